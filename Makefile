@@ -1,0 +1,27 @@
+# `make test` and `make demo` each install what they need into .venv first.
+PYTHON ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed
+
+.PHONY: test demo bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet --upgrade pip
+	$(VENV)/bin/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(VENV)/bin/pytest -q
+
+demo: $(STAMP)
+	$(VENV)/bin/gmmap replay ../shared/data/carmen/intel-corrected.log.gz --resolution 0.05 --out intel.npz --png intel.png
+
+bench: $(STAMP)
+	$(VENV)/bin/pip install --quiet -e '.[bench]'
+	$(VENV)/bin/python bench/fit.py
+	$(VENV)/bin/python bench/raytrace.py
+	$(VENV)/bin/python bench/auroc_intel.py
+
+clean:
+	rm -rf $(VENV) *.egg-info .pytest_cache

@@ -1,0 +1,78 @@
+"""Rigid poses in 2D (x, y, theta) and 3D (translation, unit quaternion w, x, y, z)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid transform x_world = R @ x_local + t, in 2D or 3D."""
+
+    R: np.ndarray  # (d, d) rotation, det +1
+    t: np.ndarray  # (d,)
+
+    def __post_init__(self):
+        R = np.asarray(self.R, dtype=np.float64)
+        t = np.asarray(self.t, dtype=np.float64)
+        d = t.shape[0]
+        if t.shape not in ((2,), (3,)) or R.shape != (d, d):
+            raise ValueError(f"pose: R must be (d, d) and t (d,) with d in 2, 3; got {R.shape}, {t.shape}")
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+            raise ValueError("pose: non-finite values")
+        if not np.allclose(R @ R.T, np.eye(d), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError("pose: R is not a rotation matrix")
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+
+    @property
+    def dim(self) -> int:
+        return self.t.shape[0]
+
+    @staticmethod
+    def identity(dim: int) -> "Pose":
+        return Pose(np.eye(dim), np.zeros(dim))
+
+    @staticmethod
+    def from_xytheta(x: float, y: float, theta: float) -> "Pose":
+        c, s = np.cos(theta), np.sin(theta)
+        return Pose(np.array([[c, -s], [s, c]]), np.array([x, y]))
+
+    @staticmethod
+    def from_quaternion(t, q_wxyz) -> "Pose":
+        w, x, y, z = np.asarray(q_wxyz, dtype=np.float64) / np.linalg.norm(q_wxyz)
+        R = np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ])
+        return Pose(R, np.asarray(t, dtype=np.float64))
+
+    def as_xytheta(self) -> tuple[float, float, float]:
+        if self.dim != 2:
+            raise ValueError("as_xytheta: pose is not 2D")
+        return float(self.t[0]), float(self.t[1]), float(np.arctan2(self.R[1, 0], self.R[0, 0]))
+
+    def as_quaternion(self) -> np.ndarray:
+        """Unit quaternion (w, x, y, z) with w >= 0, for a 3D pose."""
+        if self.dim != 3:
+            raise ValueError("as_quaternion: pose is not 3D")
+        R = self.R
+        w = np.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+        x = np.copysign(np.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
+        y = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
+        z = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
+        q = np.array([w, x, y, z])
+        return q / np.linalg.norm(q)
+
+    def compose(self, other: "Pose") -> "Pose":
+        """self ∘ other: first apply other, then self."""
+        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+
+    def inverse(self) -> "Pose":
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Transform (n, d) points from the local frame to the parent frame."""
+        return np.asarray(points) @ self.R.T + self.t

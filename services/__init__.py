@@ -1,0 +1,1 @@
+"""gmmap processes: agent, map server, HTTP API, simulator, CLI."""

@@ -1,0 +1,80 @@
+"""`gmmap replay`: a log through fit and reconstruction, offline, as a server would build it."""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from gmm_core import FitConfig, Grid, ScanModel, fit_scan
+from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
+from gmm_core.reconstruct import count_beams, reconstruct
+from gmm_core.sampling import scan_seed
+from services.datasets import RangeScan
+
+METHODS = ("mc", "raw")
+
+
+@dataclass(frozen=True)
+class ReplayMap:
+    grid: Grid
+    hits: np.ndarray
+    misses: np.ndarray
+    prob: np.ndarray
+    scans: int
+    components: int
+
+
+def data_extent(scans: Sequence[RangeScan], max_range: float, margin: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Box around every sensor origin and beam end (no-returns cut at max_range), plus a margin."""
+    ends = [np.concatenate([s.pose.apply(s.hits), s.pose.apply(s.no_return * max_range), s.pose.t[None]])
+            for s in scans]
+    points = np.concatenate(ends)
+    return points.min(axis=0) - margin, points.max(axis=0) + margin
+
+
+def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
+              progress: Callable[[int], None] | None = None) -> list[ScanModel]:
+    models = []
+    for scan in scans:
+        models.append(fit_scan(scan.hits, scan.no_return, config))
+        if progress is not None:
+            progress(1)
+    return models
+
+
+def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[float] | None = None,
+           method: str = "mc", config: FitConfig = FitConfig(), seed: int = 0,
+           samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
+           transcode: Callable[[ScanModel], ScanModel] | None = None,
+           progress: Callable[[str, int, int], Callable[[int], None]] | None = None) -> ReplayMap:
+    """The occupancy map of `scans` on the grid of `bbox` (min corner exact) or the data's extent.
+
+    `transcode` passes every scan model through the wire format first, so the offline map
+    equals what a server builds. `progress(stage, total)` returns a callback told of work done.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if not scans:
+        raise ValueError("replay: the log holds no scans")
+    dim = scans[0].pose.dim
+    if bbox is None:
+        lo, hi = data_extent(scans, config.max_range)
+    else:
+        if len(bbox) != 2 * dim:
+            raise ValueError(f"bbox: a {dim}D log needs {2 * dim} numbers, got {len(bbox)}")
+        lo, hi = np.asarray(bbox[:dim], float), np.asarray(bbox[dim:], float)
+    grid = Grid.from_bbox(lo, hi, resolution)
+    tick = (lambda stage, total: progress(stage, total)) if progress else (lambda stage, total: None)
+    if method == "raw":
+        hits, misses = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in scans], config.max_range,
+                                   tick("trace", len(scans)))
+        components = 0
+    else:
+        models = fit_scans(scans, config, tick("fit", len(scans)))
+        if transcode is not None:
+            models = [transcode(m) for m in models]
+        components = sum(m.n_components for m in models)
+        hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
+                                   samples_per_cell=samples_per_cell, progress=tick("trace", len(scans)))
+    return ReplayMap(grid, hits, misses, map_estimate(hits, misses, prior), len(scans), components)
