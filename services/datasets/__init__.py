@@ -1,0 +1,85 @@
+"""Readers of real range data: CARMEN laser logs (2D), 3DTK Kurt3D scans and plain xyz files (3D).
+
+Every reader yields `RangeScan`s: returned end points and no-return directions in the sensor
+frame, plus the sensor pose in the log's map frame. `read_scans` picks the reader.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from .carmen import FLASER_LINE, count_carmen, match_by_timestamp, read_carmen
+from .common import DatasetError, RangeScan, read_text
+from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
+from .xyz import read_xyz
+
+__all__ = ["DatasetError", "FORMATS", "RangeScan", "count_scans", "guess_format", "keep_beams",
+           "match_by_timestamp", "read_scans"]
+
+FORMATS = ("carmen", "kurt3d", "xyz")
+_CARMEN_SUFFIXES = {".log", ".clf"}
+
+
+def guess_format(path: str | Path) -> str:
+    """kurt3d for a directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with FLASER lines."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no such file or directory: {path}")
+    if path.is_dir() or SCAN_FILE.fullmatch(path.name):
+        return "kurt3d"
+    suffixes = path.suffixes[-2:]
+    if _CARMEN_SUFFIXES & set(suffixes):
+        return "carmen"
+    if suffixes and suffixes[-1] in (".gz", ".bz2") and FLASER_LINE.search(read_text(path)):
+        return "carmen"
+    return "xyz"
+
+
+def read_scans(path: str | Path, fmt: str | None = None, *, keep_fraction: float = 1.0, seed: int = 0,
+               **options) -> Iterator[RangeScan]:
+    """The scans of a data file or directory, in order.
+
+    fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
+    fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
+    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz).
+    Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
+    """
+    if not 0 < keep_fraction <= 1:
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    if not (isinstance(seed, (int, np.integer)) and seed >= 0):
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    fmt = fmt or guess_format(path)
+    readers = {"carmen": read_carmen, "kurt3d": read_kurt3d, "xyz": read_xyz}
+    if fmt not in readers:
+        raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    scans = readers[fmt](path, **options)
+    if keep_fraction == 1:
+        return scans
+    return (keep_beams(scan, keep_fraction, seed) for scan in scans)
+
+
+def count_scans(path: str | Path, fmt: str | None = None, **options) -> int:
+    """How many scans read_scans will yield (for a progress bar), without parsing the ranges."""
+    fmt = fmt or guess_format(path)
+    if fmt == "carmen":
+        return count_carmen(path)
+    if fmt == "kurt3d":
+        return count_kurt3d(path, scans=options.get("scans"))
+    if fmt == "xyz":
+        return 1
+    raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+
+
+def keep_beams(scan: RangeScan, keep_fraction: float, seed: int) -> RangeScan:
+    """The scan with round(keep_fraction * beams) of its beams, hits and no-returns alike.
+
+    The choice depends only on (seed, scan.index), so a sparsity study is repeatable.
+    """
+    n_hits, n_beams = len(scan.hits), len(scan.hits) + len(scan.no_return)
+    rng = np.random.default_rng((seed, scan.index))
+    keep = np.zeros(n_beams, dtype=bool)
+    keep[rng.choice(n_beams, size=round(keep_fraction * n_beams), replace=False)] = True
+    return replace(scan, hits=scan.hits[keep[:n_hits]], no_return=scan.no_return[keep[n_hits:]])

@@ -1,0 +1,99 @@
+"""What every reader shares: the scan record, the error type, and text-file parsing."""
+from __future__ import annotations
+
+import bz2
+import gzip
+import io
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gmm_core.pose import Pose
+
+
+class DatasetError(ValueError):
+    """A data file that cannot be read as its format; the message names file and line."""
+
+
+@dataclass(frozen=True)
+class RangeScan:
+    """One range scan: returned end points and no-return directions, both in the sensor frame.
+
+    The sensor sits at the origin of its own frame; `pose` places that frame in the log's map.
+    """
+
+    index: int  # 0-based position in the log's scan sequence
+    stamp: float  # logger timestamp, seconds
+    pose: Pose  # sensor pose in the log's map frame
+    odom_pose: Pose | None  # the uncorrected (odometry) pose, where the log has one
+    hits: np.ndarray  # (n, d) end points of returned beams
+    no_return: np.ndarray  # (m, d) unit directions of beams that returned nothing
+
+    def __post_init__(self):
+        d = self.pose.dim
+        for name in ("hits", "no_return"):
+            a = getattr(self, name)
+            if a.ndim != 2 or a.shape[1] != d or a.dtype != np.float64:
+                raise ValueError(f"RangeScan.{name}: expected float64 (n, {d}), got {a.dtype} {a.shape}")
+
+
+def read_text(path: Path) -> str:
+    """The whole file as text, decompressed by suffix (.gz, .bz2).
+
+    A missing file raises FileNotFoundError; a corrupt archive raises DatasetError.
+    """
+    opener = {".gz": gzip.open, ".bz2": bz2.open}.get(path.suffix, open)
+    # latin-1 decodes any byte, so stray bytes surface as a line-numbered parse error instead
+    with opener(path, "rt", encoding="latin-1") as f:
+        try:
+            return f.read()
+        except (OSError, EOFError) as e:
+            raise DatasetError(f"{path.name}: cannot read: {e}") from e
+
+
+def parse_rows(text: str, name: str, ncols: int) -> np.ndarray:
+    """Whitespace-separated rows of `ncols` numbers -> (k, ncols) float64; `#` starts a comment."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": reported below instead
+            rows = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2)
+    except ValueError:
+        rows = None  # loadtxt's message has no file name; find the line ourselves below
+    if rows is not None and rows.size == 0:
+        raise DatasetError(f"{name}: no data rows")
+    if rows is not None and rows.shape[1] == ncols:
+        return rows
+    for lineno, line in enumerate(text.splitlines(), 1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) != ncols:
+            raise DatasetError(f"{name}:{lineno}: expected {ncols} numbers, found {len(fields)} fields")
+        try:
+            [float(x) for x in fields]
+        except ValueError:
+            raise DatasetError(f"{name}:{lineno}: non-numeric field in {line.strip()!r}") from None
+    # float() accepts a few spellings loadtxt refuses (e.g. "1_000")
+    raise DatasetError(f"{name}: numbers in a form numpy cannot read")
+
+
+def classify_beams(ranges: np.ndarray, min_range: float,
+                   no_return_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (hit, no_return) over beams.
+
+    Ranges in [min_range, no_return_range) are hits; ranges at or beyond no_return_range are
+    no-return beams; zero, negative and non-finite ranges are neither.
+    """
+    limit = np.inf if no_return_range is None else no_return_range
+    ok = np.isfinite(ranges) & (ranges > 0)
+    return ok & (ranges >= min_range) & (ranges < limit), ok & (ranges >= limit)
+
+
+def split_points(points: np.ndarray, min_range: float,
+                 no_return_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(hits, no_return) from end points given directly (3D scans): ranges are their norms."""
+    ranges = np.linalg.norm(points, axis=1)
+    hit, miss = classify_beams(ranges, min_range, no_return_range)
+    return np.ascontiguousarray(points[hit]), points[miss] / ranges[miss, None]
