@@ -20,12 +20,13 @@ def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PR
 def classify(prob: np.ndarray, variance: float) -> np.ndarray:
     """OCCUPIED / FREE / UNKNOWN by the thresholds (1 ± sqrt(1 - 4 sigma^2)) / 2 of Eq. 12.
 
-    A cell whose Bernoulli variance p(1 - p) exceeds `variance` stays UNKNOWN.
+    A cell whose Bernoulli variance p(1 - p) exceeds `variance` stays UNKNOWN, and so does
+    p = 0.5, the prior, whatever the band.
     """
     if not 0.0 <= variance <= 0.25:
         raise ValueError(f"variance: sigma^2 must lie in [0, 0.25], got {variance}")
     half_band = 0.5 * np.sqrt(1.0 - 4.0 * variance)
     out = np.full(np.shape(prob), UNKNOWN, dtype=np.int8)
-    out[prob >= 0.5 + half_band] = OCCUPIED
-    out[prob <= 0.5 - half_band] = FREE
+    out[(prob >= 0.5 + half_band) & (prob > 0.5)] = OCCUPIED
+    out[(prob <= 0.5 - half_band) & (prob < 0.5)] = FREE
     return out

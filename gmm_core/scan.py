@@ -43,22 +43,28 @@ class ScanModel:
 class FitConfig:
     """How a scan becomes mixtures.
 
-    The number of components follows the data (Sec. IV-C): about `points_per_component`
-    points each, so a sparse scan gets few and a dense one many; `max_components` bounds the
-    message size for dense 3D scans.
+    The number of components follows the data and a target resolution (Sec. IV-C): about
+    `points_per_component` points each, so a sparse scan gets few and a dense one many, but no
+    more than the cells of size `component_size` that the points occupy (a dense 3D scan needs
+    one component per patch of surface, not one per three points), and no more than
+    `max_components`, which bounds the message size.
     """
 
     points_per_component: float = 3.0
+    component_size: float | None = None  # m; None: points_per_component alone decides
     max_components: int = 4096
     max_range: float = 10.0  # where no-return beams end (long free rays bleed through walls)
     reg_covar: float = 1e-4  # variance floor, m^2: about the sensor's 1 cm range noise
     max_iter: int = 100
     tol: float = 1e-3
 
-    def n_components(self, n_points: int) -> int:
-        if n_points == 0:
+    def n_components(self, points: np.ndarray) -> int:
+        if len(points) == 0:
             return 0
-        k = int(np.ceil(n_points / self.points_per_component))
+        k = int(np.ceil(len(points) / self.points_per_component))
+        if self.component_size is not None:
+            cells = np.unique(np.floor(points / self.component_size).astype(np.int64), axis=0)
+            k = min(k, len(cells))
         return max(1, min(k, self.max_components))
 
 
@@ -73,6 +79,6 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
     dim = hits.shape[1]
     ends = no_return.reshape(-1, dim) * config.max_range
     options = dict(reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)
-    occupied = fit_mixture(hits, config.n_components(len(hits)), **options)
-    free = fit_mixture(ends, config.n_components(len(ends)), **options)
+    occupied = fit_mixture(hits, config.n_components(hits), **options)
+    free = fit_mixture(ends, config.n_components(ends), **options)
     return ScanModel(occupied, free, np.zeros(dim), config.max_range)

@@ -43,7 +43,11 @@ def cmd_replay(args) -> int:
     scans = list(tqdm(read_scans(args.log, args.format, keep_fraction=args.keep_fraction, seed=args.seed, **options),
                       total=total, desc="read", unit="scan", file=sys.stderr, leave=False))
     start, bars = _progress_bars()
-    config = FitConfig(max_range=args.max_range, points_per_component=args.points_per_component)
+    component_size = args.component_size
+    if component_size is None and scans and scans[0].pose.dim == 3:
+        component_size = 1.0  # dense 3D scans: one component per square metre of surface or so
+    config = FitConfig(max_range=args.max_range, points_per_component=args.points_per_component,
+                       component_size=component_size)
     result = replay(scans, resolution=args.resolution, bbox=args.bbox, method=args.method, config=config,
                     seed=args.seed, samples_per_cell=args.samples_per_cell, prior=args.prior, progress=start)
     for bar in bars:
@@ -77,6 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=["mc", "raw"], default="mc")
     p.add_argument("--max-range", type=float, default=10.0, help="where no-return beams end, m")
     p.add_argument("--points-per-component", type=float, default=3.0)
+    p.add_argument("--component-size", type=float, default=None,
+                   help="at most one component per occupied cell of this size, m (default: none in 2D, 1.0 in 3D)")
     p.add_argument("--samples-per-cell", type=float, default=4.0)
     p.add_argument("--prior", type=float, default=0.2, help="N_p of Eq. 11")
     p.add_argument("--origin", type=_floats, default=None, help="sensor origin x,y,z of an xyz file")

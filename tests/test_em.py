@@ -1,0 +1,85 @@
+"""The numba EM against scikit-learn, and its behaviour on degenerate point sets."""
+import numpy as np
+import pytest
+from sklearn.mixture import GaussianMixture
+
+from gmm_core import FitConfig, fit_scan
+from gmm_core.em import fit_mixture
+
+
+def test_mean_log_likelihood_matches_scikit_learn_on_intel_scans(intel_scans):
+    # Same data, same K (3 points per component), same variance floor; averaged over 40 scans
+    # because either EM may land in a slightly different local optimum on any one scan.
+    ours, theirs = [], []
+    for scan in intel_scans[::23]:
+        k = FitConfig().n_components(scan.hits)
+        ours.append(fit_mixture(scan.hits, k, reg_covar=1e-4).log_density(scan.hits).mean())
+        sk = GaussianMixture(k, covariance_type="full", reg_covar=1e-4, random_state=0).fit(scan.hits)
+        theirs.append(sk.score(scan.hits))
+    ours, theirs = np.mean(ours), np.mean(theirs)
+    assert abs(ours - theirs) <= 0.01 * abs(theirs), (ours, theirs)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_recovers_well_separated_clusters(dim):
+    rng = np.random.default_rng(1)
+    centres = rng.uniform(-20, 20, (5, dim))
+    points = np.concatenate([c + 0.3 * rng.standard_normal((400, dim)) for c in centres])
+    mix = fit_mixture(points, 5, reg_covar=1e-6)
+    for c in centres:
+        nearest = np.linalg.norm(mix.means - c, axis=1).argmin()
+        assert np.linalg.norm(mix.means[nearest] - c) < 0.1
+        assert np.allclose(mix.covariances[nearest], 0.09 * np.eye(dim), atol=0.03)
+    assert np.allclose(mix.weights, 0.2, atol=0.01)
+
+
+@pytest.mark.parametrize("points", [
+    np.array([[1.0, 2.0]]),
+    np.array([[1.0, 2.0], [1.5, 2.5]]),
+    np.repeat([[3.0, -1.0, 2.0]], 10, axis=0),
+    np.column_stack([np.linspace(0, 5, 30), 2 * np.linspace(0, 5, 30)]),  # collinear
+    np.column_stack([np.linspace(0, 5, 30), np.zeros(30), np.zeros(30)]),
+], ids=["one", "two", "duplicates", "collinear-2d", "collinear-3d"])
+def test_degenerate_points_give_positive_definite_covariances(points):
+    mix = fit_mixture(points, max(1, len(points) // 3))
+    assert mix.n_components >= 1
+    assert np.isfinite(mix.means).all() and np.isfinite(mix.covariances).all()
+    assert (np.linalg.eigvalsh(mix.covariances) > 0).all()
+    assert np.isclose(mix.weights.sum(), 1.0)
+    assert mix.support == len(points)
+
+
+def test_fit_is_deterministic_and_seeded():
+    rng = np.random.default_rng(2)
+    points = rng.standard_normal((500, 3)) * [4, 4, 0.1]
+    a, b = fit_mixture(points, 20, seed=7), fit_mixture(points, 20, seed=7)
+    assert np.array_equal(a.means, b.means) and np.array_equal(a.covariances, b.covariances)
+
+
+def test_fit_scan_uses_free_beams_at_max_range():
+    hits = np.array([[2.0, 0.1], [2.0, 0.0], [2.0, -0.1]])
+    angles = np.linspace(1.0, 1.5, 12)
+    no_return = np.column_stack([np.cos(angles), np.sin(angles)])
+    model = fit_scan(hits, no_return, FitConfig(max_range=7.0))
+    assert model.occupied.support == 3 and model.free.support == 12
+    assert model.free.n_components == 4
+    assert np.allclose(np.linalg.norm(model.free.means, axis=1), 7.0, atol=0.05)
+    assert np.array_equal(model.origin, [0.0, 0.0])
+
+
+def test_component_count_follows_points_and_component_size():
+    rng = np.random.default_rng(3)
+    patch = rng.uniform(0, 1, (3000, 3)) * [2.0, 2.0, 0.01]  # a 2 m x 2 m patch of surface
+    assert FitConfig().n_components(patch) == 1000
+    assert FitConfig(component_size=0.5).n_components(patch) == 16
+    assert FitConfig(component_size=0.5, max_components=10).n_components(patch) == 10
+
+
+def test_fit_scan_of_an_empty_scan_is_empty():
+    model = fit_scan(np.zeros((0, 2)), np.zeros((0, 2)))
+    assert model.occupied.n_components == 0 and model.free.n_components == 0
+
+
+def test_nan_points_are_rejected():
+    with pytest.raises(ValueError, match="NaN"):
+        fit_mixture(np.array([[0.0, np.nan], [1.0, 1.0]]), 1)

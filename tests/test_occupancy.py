@@ -1,0 +1,41 @@
+"""Eq. 11 and Eq. 12 in closed form; AUROC against scikit-learn."""
+import numpy as np
+import pytest
+from sklearn.metrics import roc_auc_score
+
+from gmm_core.metrics import auroc, grid_auroc
+from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, classify, map_estimate
+
+
+def test_map_estimate_closed_form():
+    hits = np.array([0.0, 3.0, 0.0, 2.0])
+    misses = np.array([0.0, 0.0, 5.0, 2.0])
+    p = map_estimate(hits, misses, prior=0.2)
+    assert np.allclose(p, [0.5, 3.2 / 3.4, 0.2 / 5.4, 0.5])
+    assert p.dtype == np.float32
+    with pytest.raises(ValueError, match="prior"):
+        map_estimate(hits, misses, prior=0.0)
+
+
+def test_classify_dead_band():
+    p = np.array([0.05, 0.2, 0.5, 0.8, 0.95])
+    # sigma^2 = 0.09: thresholds (1 ± 0.8) / 2 = 0.1 and 0.9.
+    assert classify(p, 0.09).tolist() == [FREE, UNKNOWN, UNKNOWN, UNKNOWN, OCCUPIED]
+    # sigma^2 = 0.25: no dead band beyond p = 0.5 itself, which stays unknown.
+    assert classify(p, 0.25).tolist() == [FREE, FREE, UNKNOWN, OCCUPIED, OCCUPIED]
+    with pytest.raises(ValueError, match="variance"):
+        classify(p, 0.3)
+
+
+def test_auroc_matches_scikit_learn_with_ties():
+    rng = np.random.default_rng(0)
+    labels = rng.random(5000) < 0.3
+    scores = np.round(rng.random(5000) + 0.3 * labels, 2)  # rounding makes many ties
+    assert np.isclose(auroc(scores, labels), roc_auc_score(labels, scores))
+
+
+def test_grid_auroc_leaves_out_unobserved_cells():
+    truth_h = np.array([2.0, 0.0, 0.0, 0.0])
+    truth_m = np.array([0.0, 3.0, 0.0, 1.0])
+    prob = np.array([0.9, 0.1, 0.99, 0.2])
+    assert grid_auroc(prob, truth_h, truth_m) == 1.0
