@@ -1,0 +1,338 @@
+"""msgpack codec: encode(message) -> bytes and decode(bytes) -> message; layout in docs/PROTOCOL.md.
+
+Every message is one msgpack map with a version "v" and a type code "t". Scan messages also
+name the encoding "e" of their two mixtures: "f32" (float32 tables, lossless for float32
+inputs) or "q" (quantised, about a third of the size; see protocol.quantize).
+decode() trusts nothing: whatever the bytes, it returns a valid message or raises ProtocolError.
+"""
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+
+from gmm_core.mixture import Mixture
+from gmm_core.pose import Pose
+from gmm_core.scan import ScanModel
+from protocol.errors import ProtocolError
+from protocol.keys import MAX_NODE, check_id
+from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, ScanMessage
+from protocol.quantize import dequantize, quantize, record_bits, stream_bytes
+from protocol.wire import Fields
+
+VERSION = 1
+ENCODINGS = ("q", "f32")
+MAX_COMPONENTS = 4096  # default cap on occupied + free components of one scan
+MAX_BYTES = 1 << 20  # default cap on a payload, checked before unpacking
+MAX_LIST = 65536  # msgpack arrays (robot lists, grid shapes) are short
+WEIGHT_SUM_TOLERANCE = 1e-3
+QUATERNION_NORM_TOLERANCE = 1e-3
+SYMMETRY_TOLERANCE = 1e-6  # relative to the component's largest covariance entry
+UNCHECKED = "unchecked error"  # prefix of errors caught by the safety net, not a named check
+
+TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5}
+
+
+def encode(message: Message, encoding: str = "q") -> bytes:
+    """Message -> bytes. `encoding` ("q" or "f32") applies to scan mixtures; other messages
+    ignore it. Raises ProtocolError for anything decode() would reject (NaN, non-PD, ...)."""
+    if encoding not in ENCODINGS:
+        raise ProtocolError("encoding", f"must be one of {ENCODINGS}, got {encoding!r:.80}")
+    code = TYPE_CODES.get(type(message))
+    if code is None:
+        raise ProtocolError("message", f"cannot encode {type(message).__name__}")
+    body = _ENCODERS[code](message, encoding)
+    return msgpack.packb({"v": VERSION, "t": code, **body}, use_bin_type=True)
+
+
+def decode(data: bytes, *, expect: type | None = None, max_components: int = MAX_COMPONENTS,
+           max_bytes: int = MAX_BYTES) -> Message:
+    """bytes -> a valid message, or ProtocolError naming the offending field; nothing else.
+
+    `expect` (a message class) rejects any other type; `max_components` caps the components
+    of a scan (occupied + free); `max_bytes` caps the payload (raise it for large MapReply).
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError("message", f"must be bytes, got {type(data).__name__}")
+    if len(data) > max_bytes:
+        raise ProtocolError("message", f"payload of {len(data)} bytes exceeds the maximum of {max_bytes}")
+    try:
+        raw = msgpack.unpackb(
+            bytes(data), raw=False, strict_map_key=True, object_pairs_hook=_map_without_duplicates,
+            max_str_len=1024, max_bin_len=max_bytes, max_array_len=MAX_LIST, max_map_len=64, max_ext_len=0,
+        )
+    except Exception as error:  # msgpack raises several types (FormatError, ValueError, StackError, ...)
+        raise ProtocolError("message", f"malformed msgpack: {type(error).__name__}: {error}") from None
+    try:
+        message = _decode_message(Fields(raw), max_components)
+    except ProtocolError:
+        raise
+    except Exception as error:  # a check we missed must still surface as a protocol error
+        raise ProtocolError("message", f"{UNCHECKED}: {type(error).__name__}: {error}") from None
+    if expect is not None and not isinstance(message, expect):
+        raise ProtocolError("type", f"expected {expect.__name__}, got {type(message).__name__}")
+    return message
+
+
+def _map_without_duplicates(pairs):
+    result = dict(pairs)
+    if len(result) != len(pairs):
+        raise ValueError("duplicate map key")
+    return result
+
+
+def _decode_message(f: Fields, max_components: int) -> Message:
+    version = f.get("v", "version")
+    if type(version) is not int or version != VERSION:
+        raise ProtocolError("version", f"unsupported version {version!r:.80}, this decoder reads {VERSION}")
+    code = f.get("t", "type")
+    decoder = _DECODERS.get(code) if type(code) is int else None
+    if decoder is None:
+        raise ProtocolError("type", f"unknown message type {code!r:.80}")
+    return decoder(f, max_components)
+
+
+# --- poses: 2D [x, y, theta], 3D [tx, ty, tz, qw, qx, qy, qz]
+
+
+def _pose_vector(pose: Pose) -> np.ndarray:
+    if pose.dim == 2:
+        return np.array(pose.as_xytheta())
+    return np.concatenate([pose.t, pose.as_quaternion()])
+
+
+def _pose_from_vector(vector: np.ndarray, field: str) -> Pose:
+    vector = vector.astype(np.float64)
+    if len(vector) == 3:
+        return Pose.from_xytheta(*vector)
+    norm = np.linalg.norm(vector[3:])
+    if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
+        raise ProtocolError(field, f"quaternion norm {norm:.6g} is not 1")
+    return Pose.from_quaternion(vector[:3], vector[3:])
+
+
+def _pose_width(dim: int) -> int:
+    return 3 if dim == 2 else 7
+
+
+def _float32(values, field: str) -> bytes:
+    """Little-endian float32 bytes, refusing what float32 cannot hold (NaN, inf, > 3.4e38)."""
+    with np.errstate(over="ignore"):
+        array = np.asarray(values, dtype="<f4")
+    if not np.isfinite(array).all():
+        raise ProtocolError(field, "must be finite in float32")
+    return array.tobytes()
+
+
+def _float64(values, field: str) -> bytes:
+    array = np.asarray(values, dtype="<f8")
+    if not np.isfinite(array).all():
+        raise ProtocolError(field, "must be finite")
+    return array.tobytes()
+
+
+# --- mixtures
+
+
+def _check_mixture(mixture: Mixture, field: str) -> None:
+    """What both encodings demand of a mixture: finite, weights >= 0 summing to 1, symmetric
+    positive definite covariances (Cholesky must succeed, as the map server will run it)."""
+    for name in ("weights", "means", "covariances"):
+        if not np.isfinite(getattr(mixture, name)).all():
+            raise ProtocolError(f"{field}.{name}", "must be finite (no NaN or inf)")
+    if mixture.n_components == 0:
+        return
+    weights, covs = mixture.weights, mixture.covariances
+    if (weights < 0).any():
+        raise ProtocolError(f"{field}.weights", f"negative weight at component {int(np.argmax(weights < 0))}")
+    if abs(weights.sum() - 1) > WEIGHT_SUM_TOLERANCE:
+        raise ProtocolError(f"{field}.weights", f"sum to {weights.sum():.6g}, not 1")
+    scale = np.abs(covs).max(axis=(1, 2))
+    asymmetric = np.abs(covs - np.swapaxes(covs, 1, 2)).max(axis=(1, 2)) > SYMMETRY_TOLERANCE * scale
+    if asymmetric.any():
+        raise ProtocolError(f"{field}.covariances", f"not symmetric at component {int(np.argmax(asymmetric))}")
+    try:
+        np.linalg.cholesky(covs)
+    except np.linalg.LinAlgError:
+        bad = np.linalg.eigvalsh(covs).min(axis=1) <= 0
+        where = f" at component {int(np.argmax(bad))}" if bad.any() else ""
+        raise ProtocolError(f"{field}.covariances", f"not positive definite{where}") from None
+
+
+def _f32_columns(dim: int) -> int:
+    return dim + dim * (dim + 1) // 2 + 1  # mean, upper triangle of the covariance, weight
+
+
+def _mixture_from_table(table: np.ndarray, dim: int, support: int) -> Mixture:
+    table = table.astype(np.float64)
+    rows, cols = np.triu_indices(dim)
+    covs = np.zeros((len(table), dim, dim))
+    covs[:, rows, cols] = table[:, dim:-1]
+    covs[:, cols, rows] = table[:, dim:-1]
+    return Mixture(table[:, -1], table[:, :dim], covs, support)
+
+
+def _encode_mixture(mixture: Mixture, encoding: str, field: str) -> dict:
+    _check_mixture(mixture, field)
+    k, d = mixture.n_components, mixture.dim
+    if encoding == "f32":
+        rows, cols = np.triu_indices(d)
+        table = np.concatenate([mixture.means, mixture.covariances[:, rows, cols], mixture.weights[:, None]], axis=1)
+        packed = _float32(table, f"{field}.components")
+        # float32 rounding can break positive definiteness of a thin component: check what we send
+        _check_mixture(_mixture_from_table(np.frombuffer(packed, "<f4").reshape(k, _f32_columns(d)), d, 0), field)
+        return {"N": mixture.support, "c": packed}
+    _float32(mixture.means, f"{field}.means")  # the box of the means is sent as float32
+    bounds, stream = quantize(mixture)
+    wire = {"N": mixture.support, "c": stream}
+    if k:  # an empty mixture has no box of means
+        wire["b"] = bounds.astype("<f4").tobytes()
+    return wire
+
+
+def _component_count(stream: bytes, dim: int, encoding: str, field: str) -> int:
+    """K follows from the length of "c": 4 * columns bytes per f32 row; for "q", records of
+    record_bits(dim) > 8 bits padded to a whole byte, so each length fits at most one K."""
+    if encoding == "f32":
+        row = 4 * _f32_columns(dim)
+        if len(stream) % row:
+            raise ProtocolError(field, f"length {len(stream)} is not a multiple of {row} bytes")
+        return len(stream) // row
+    count = 8 * len(stream) // record_bits(dim)
+    if stream_bytes(count, dim) != len(stream):
+        raise ProtocolError(field, f"length {len(stream)} bytes fits no whole number of {record_bits(dim)}-bit records")
+    return count
+
+
+def _decode_mixture(f: Fields, stream: bytes, count: int, dim: int, encoding: str) -> Mixture:
+    support = f.int("N", "support")
+    if encoding == "f32":
+        table = np.frombuffer(stream, "<f4").reshape(count, _f32_columns(dim))
+        if not np.isfinite(table).all():
+            raise ProtocolError(f.name("components"), "must be finite (no NaN or inf)")
+        mixture = _mixture_from_table(table, dim, support)
+        _check_mixture(mixture, f.prefix)
+        return mixture
+    if count == 0:
+        return Mixture(np.zeros(0), np.zeros((0, dim)), np.zeros((0, dim, dim)), support)
+    bounds = f.array("b", "bounds", "<f4", 2 * dim)
+    if (bounds[:dim] > bounds[dim:]).any():
+        raise ProtocolError(f.name("bounds"), "lower corner above upper corner")
+    mixture = dequantize(bounds, stream, count, dim, f.prefix)
+    return Mixture(mixture.weights, mixture.means, mixture.covariances, support)
+
+
+# --- scan message
+
+
+def _encode_scan(message: ScanMessage, encoding: str) -> dict:
+    model = message.model
+    if not (np.isfinite(model.max_range) and model.max_range > 0):
+        raise ProtocolError("max_range", f"must be finite and > 0, got {model.max_range}")
+    return {
+        "e": encoding, "f": message.fleet, "r": message.robot, "n": message.node, "s": message.stamp,
+        "d": message.dim, "p": _float32(_pose_vector(message.pose), "pose"),
+        "o": _float32(np.append(model.origin, model.max_range), "origin"),
+        "O": _encode_mixture(model.occupied, encoding, "occupied"),
+        "F": _encode_mixture(model.free, encoding, "free"),
+    }
+
+
+def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
+    encoding = f.get("e", "encoding")
+    if encoding not in ENCODINGS:
+        raise ProtocolError("encoding", f"unknown encoding {encoding!r:.80}, expected one of {ENCODINGS}")
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    node, stamp = f.int("n", "node"), f.float("s", "stamp")
+    dim = f.int("d", "dimension", 2, 3)
+    pose = _pose_from_vector(f.array("p", "pose", "<f4", _pose_width(dim)), "pose")
+    sensor = f.array("o", "origin", "<f4", dim + 1)  # origin, then max_range
+    origin, max_range = sensor[:dim], float(sensor[dim])
+    if max_range <= 0:
+        raise ProtocolError("max_range", f"must be > 0, got {max_range}")
+    parts = [Fields(f.get(key, name), name) for key, name in (("O", "occupied"), ("F", "free"))]
+    streams = [part.array("c", "components", "u1").tobytes() for part in parts]
+    counts = [_component_count(stream, dim, encoding, part.name("components")) for part, stream in zip(parts, streams)]
+    if sum(counts) > max_components:
+        raise ProtocolError("components", f"{sum(counts)} components exceed the maximum of {max_components}")
+    occupied, free = (_decode_mixture(part, stream, count, dim, encoding)
+                      for part, stream, count in zip(parts, streams, counts))
+    return ScanMessage(fleet, robot, node, stamp, ScanModel(occupied, free, origin, max_range), pose)
+
+
+# --- pose-graph update, ack, map query and reply: small, so plain float64 and readable keys
+
+
+def _encode_poses(message: PoseGraphUpdate, encoding: str) -> dict:
+    width = _pose_width(message.dim)
+    vectors = np.array([_pose_vector(pose) for _, pose in message.poses]).reshape(-1, width)
+    anchor = None if message.anchor is None else _float64(_pose_vector(message.anchor), "anchor")
+    return {
+        "f": message.fleet, "r": message.robot, "d": message.dim, "rev": message.revision,
+        "nodes": np.array([node for node, _ in message.poses], dtype="<u8").tobytes(),
+        "poses": _float64(vectors, "poses.poses"), "anchor": anchor,
+    }
+
+
+def _decode_poses(f: Fields, max_components: int) -> PoseGraphUpdate:
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    dim, revision = f.int("d", "dimension", 2, 3), f.int("rev", "revision")
+    nodes = _counts(f.array("nodes", "poses.nodes", "<u8"), "poses.nodes")
+    vectors = f.array("poses", "poses.poses", "<f8", len(nodes) * _pose_width(dim)).reshape(len(nodes), _pose_width(dim))
+    anchor = f.array("anchor", "anchor", "<f8", _pose_width(dim), nullable=True)
+    poses = tuple((node, _pose_from_vector(vector, "poses.poses")) for node, vector in zip(nodes, vectors))
+    return PoseGraphUpdate(fleet, robot, revision, poses, None if anchor is None else _pose_from_vector(anchor, "anchor"))
+
+
+def _counts(array: np.ndarray, field: str) -> list[int]:
+    if (array > MAX_NODE).any():
+        raise ProtocolError(field, "must be integers in [0, 2^63-1]")
+    return [int(value) for value in array]
+
+
+def _encode_ack(message: Ack, encoding: str) -> dict:
+    return {"f": message.fleet, "r": message.robot, "kind": message.kind,
+            "ids": np.array(message.ids, dtype="<u8").tobytes()}
+
+
+def _decode_ack(f: Fields, max_components: int) -> Ack:
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    return Ack(fleet, robot, f.get("kind", "kind"), tuple(_counts(f.array("ids", "ids", "<u8"), "ids")))
+
+
+def _encode_map_query(message: MapQuery, encoding: str) -> dict:
+    return {"f": message.fleet, "d": message.dim, "lo": message.lo.astype("<f8").tobytes(),
+            "hi": message.hi.astype("<f8").tobytes(), "res": message.resolution,
+            "robots": None if message.robots is None else list(message.robots)}
+
+
+def _decode_map_query(f: Fields, max_components: int) -> MapQuery:
+    dim = f.int("d", "dimension", 2, 3)
+    robots = f.get("robots", "robots")
+    if robots is not None and type(robots) is not list:
+        raise ProtocolError("robots", f"must be an array of robot ids or nil, got {type(robots).__name__}")
+    return MapQuery(
+        check_id(f.get("f", "fleet"), "fleet"), f.array("lo", "bbox.lo", "<f8", dim),
+        f.array("hi", "bbox.hi", "<f8", dim), f.float("res", "resolution"),
+        None if robots is None else tuple(robots),
+    )
+
+
+def _encode_map_reply(message: MapReply, encoding: str) -> dict:
+    return {"f": message.fleet, "d": message.dim, "origin": message.origin.astype("<f8").tobytes(),
+            "res": message.resolution, "shape": list(message.probabilities.shape),
+            "p": message.probabilities.astype("<f4").tobytes()}
+
+
+def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
+    dim = f.int("d", "dimension", 2, 3)
+    shape = f.get("shape", "shape")
+    if type(shape) is not list or len(shape) != dim or any(type(n) is not int or not 1 <= n <= 2**31 for n in shape):
+        raise ProtocolError("shape", f"must be {dim} integers in [1, 2^31], got {shape!r:.80}")
+    cells = int(np.prod(shape, dtype=object))
+    grid = f.array("p", "probabilities", "<f4", cells).reshape(shape)
+    return MapReply(check_id(f.get("f", "fleet"), "fleet"), f.array("origin", "origin", "<f8", dim),
+                    f.float("res", "resolution"), grid)
+
+
+_ENCODERS = {1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply}
+_DECODERS = {1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply}

@@ -1,0 +1,186 @@
+"""What crosses the wire, as frozen dataclasses; see docs/PROTOCOL.md for the bytes.
+
+Construction checks what is cheap and structural (ids, counts, dimensions); the numeric
+checks on mixtures (finite, positive definite, normalised) run in the codec, on both sides.
+Classes that hold arrays compare by identity (eq=False): numpy arrays have no single truth value.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from gmm_core.pose import Pose
+from gmm_core.scan import ScanModel
+from protocol.errors import ProtocolError
+from protocol.keys import check_count, check_id
+
+
+def _check_finite(value, field: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ProtocolError(field, f"must be a finite number, got {value!r:.80}")
+    return float(value)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanMessage:
+    """One scan of one robot: its two mixtures in the node frame and the node's pose estimate.
+
+    `pose` maps the node frame into the robot's map frame; later PoseGraphUpdates supersede it.
+    """
+
+    fleet: str
+    robot: str
+    node: int  # unique per robot, increasing with time
+    stamp: float  # seconds
+    model: ScanModel  # occupied + free mixtures, sensor origin, max range; fixes the dimension
+    pose: Pose
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        check_id(self.robot, "robot")
+        check_count(self.node, "node")
+        object.__setattr__(self, "stamp", _check_finite(self.stamp, "stamp"))
+        if not isinstance(self.model, ScanModel):
+            raise ProtocolError("model", "must be a gmm_core.scan.ScanModel")
+        if not isinstance(self.pose, Pose) or self.pose.dim != self.model.dim:
+            raise ProtocolError("pose", f"must be a Pose of dimension {self.model.dim}")
+
+    @property
+    def dim(self) -> int:
+        return self.model.dim
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGraphUpdate:
+    """Corrected node poses in the robot's map frame, and optionally where that frame sits.
+
+    `revision` never decreases per robot; a receiver drops an update older than the newest
+    revision it has applied. One revision may come in several parts (same revision number) when
+    the graph does not fit one message. An update lists only nodes whose poses it sets; others
+    keep their last pose. `anchor` maps the robot's map frame into the fleet's world frame.
+    """
+
+    fleet: str
+    robot: str
+    revision: int
+    poses: tuple[tuple[int, Pose], ...]
+    anchor: Pose | None = None
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        check_id(self.robot, "robot")
+        check_count(self.revision, "revision")
+        poses = tuple((node, pose) for node, pose in self.poses)
+        if not poses and self.anchor is None:
+            raise ProtocolError("poses", "an update needs at least one pose or an anchor")
+        for node, pose in poses:
+            check_count(node, "poses.nodes")
+            if not isinstance(pose, Pose):
+                raise ProtocolError("poses.poses", "must be gmm_core.pose.Pose")
+        if len({node for node, _ in poses}) != len(poses):
+            raise ProtocolError("poses.nodes", "duplicate node id")
+        if self.anchor is not None and not isinstance(self.anchor, Pose):
+            raise ProtocolError("anchor", "must be a gmm_core.pose.Pose or None")
+        dims = {pose.dim for _, pose in poses} | ({self.anchor.dim} if self.anchor is not None else set())
+        if len(dims) != 1:
+            raise ProtocolError("poses", "all poses and the anchor must share one dimension")
+        object.__setattr__(self, "poses", poses)
+
+    @property
+    def dim(self) -> int:
+        return self.anchor.dim if self.anchor is not None else self.poses[0][1].dim
+
+
+@dataclass(frozen=True)
+class Ack:
+    """The server stored these scans (kind "scan", ids = node ids) or applied these pose-graph
+    revisions (kind "poses", ids = revisions). Robots may drop what was acknowledged."""
+
+    fleet: str
+    robot: str
+    kind: Literal["scan", "poses"]
+    ids: tuple[int, ...]
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        check_id(self.robot, "robot")
+        if self.kind not in ("scan", "poses"):
+            raise ProtocolError("kind", f'must be "scan" or "poses", got {self.kind!r:.80}')
+        ids = tuple(self.ids)
+        for value in ids:
+            check_count(value, "ids")
+        object.__setattr__(self, "ids", ids)
+
+
+@dataclass(frozen=True, eq=False)
+class MapQuery:
+    """Occupancy of the axis-aligned box [lo, hi] in the fleet's world frame, on a grid of
+    `resolution`; only from `robots` when given, else from every robot of the fleet."""
+
+    fleet: str
+    lo: np.ndarray  # (d,) min corner, metres
+    hi: np.ndarray  # (d,) max corner, metres
+    resolution: float
+    robots: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        lo = np.asarray(self.lo, dtype=np.float64)
+        hi = np.asarray(self.hi, dtype=np.float64)
+        if lo.shape not in ((2,), (3,)) or hi.shape != lo.shape:
+            raise ProtocolError("bbox", f"lo and hi must both have 2 or 3 entries, got {lo.shape}, {hi.shape}")
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo < hi).all()):
+            raise ProtocolError("bbox", "must be finite with lo < hi on every axis")
+        resolution = _check_finite(self.resolution, "resolution")
+        if resolution <= 0:
+            raise ProtocolError("resolution", f"must be > 0, got {resolution}")
+        if self.robots is not None:
+            robots = tuple(check_id(robot, "robots") for robot in self.robots)
+            object.__setattr__(self, "robots", robots)
+        object.__setattr__(self, "lo", lo)
+        object.__setattr__(self, "hi", hi)
+        object.__setattr__(self, "resolution", resolution)
+
+    @property
+    def dim(self) -> int:
+        return self.lo.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class MapReply:
+    """A probability grid: index [iy, ix] (2D) or [iz, iy, ix] (3D), cell centre
+    origin + (index + 0.5) * resolution; 0.5 where nothing was observed."""
+
+    fleet: str
+    origin: np.ndarray  # (d,) min corner of the grid, metres, (x, y[, z])
+    resolution: float
+    probabilities: np.ndarray  # float32, shape (ny, nx) or (nz, ny, nx), values in [0, 1]
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        origin = np.asarray(self.origin, dtype=np.float64)
+        probabilities = np.asarray(self.probabilities, dtype=np.float32)
+        if origin.shape not in ((2,), (3,)) or probabilities.ndim != origin.shape[0]:
+            raise ProtocolError("shape", f"origin {origin.shape} and grid {probabilities.shape} must share dimension 2 or 3")
+        if probabilities.size == 0:
+            raise ProtocolError("shape", f"every extent must be >= 1, got {probabilities.shape}")
+        if not np.isfinite(origin).all():
+            raise ProtocolError("origin", "must be finite")
+        resolution = _check_finite(self.resolution, "resolution")
+        if resolution <= 0:
+            raise ProtocolError("resolution", f"must be > 0, got {resolution}")
+        if not ((probabilities >= 0) & (probabilities <= 1)).all():  # also rejects NaN
+            raise ProtocolError("probabilities", "must lie in [0, 1]")
+        object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "resolution", resolution)
+        object.__setattr__(self, "probabilities", probabilities)
+
+    @property
+    def dim(self) -> int:
+        return self.origin.shape[0]
+
+
+Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply

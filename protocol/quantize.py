@@ -1,0 +1,202 @@
+"""Encoding "q": a mixture as fixed-width integers, bit-packed (docs/PROTOCOL.md, "q").
+
+Per component: the mean relative to the mixture's bounding box, the log standard deviations
+along the principal axes, the orientation of those axes (2D: one angle; 3D: a quaternion as
+its smallest three components) and the weight on a log scale. A covariance is rebuilt as
+R diag(exp(2 s)) R^T, so every decoded covariance is symmetric positive definite whatever
+the bits say.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gmm_core.mixture import Mixture
+from protocol.errors import ProtocolError
+
+MEAN_BITS = {2: 13, 3: 14}  # per axis, over the mixture's box of means
+LOG_STD_BITS = 9
+LOG_STD_MIN = math.log(1e-4)  # std 0.1 mm; smaller standard deviations are clamped up
+LOG_STD_MAX = math.log(1e2)  # std 100 m; larger ones are clamped down
+LOG_STD_STEP = (LOG_STD_MAX - LOG_STD_MIN) / (2**LOG_STD_BITS - 1)  # 2.7 % per step
+ANGLE_BITS = 7  # 2D: angle of the first principal axis in [0, pi/2), 0.70 deg per step
+QUAT_BITS = 9  # 3D: each of the smallest three quaternion components in [-1/sqrt2, 1/sqrt2]
+QUAT_HALF_RANGE = 1 / math.sqrt(2)
+WEIGHT_BITS = 7
+WEIGHT_STEPS_PER_OCTAVE = 8  # weight proportional to 2^(q/8): 9 % per step, 16 octaves of range
+
+ANGLE_STEPS = 2**ANGLE_BITS  # angles are k * (pi/2) / ANGLE_STEPS, k < ANGLE_STEPS
+QUAT_MAX = 2**QUAT_BITS - 1
+WEIGHT_MAX = 2**WEIGHT_BITS - 1
+LOG_STD_CODE_MAX = 2**LOG_STD_BITS - 1
+
+
+def record_fields(dim: int) -> tuple[tuple[str, int], ...]:
+    """(name, bits) of one component's record, in stream order (least significant first)."""
+    means = tuple((f"mean{axis}", MEAN_BITS[dim]) for axis in range(dim))
+    stds = tuple((f"log_std{axis}", LOG_STD_BITS) for axis in range(dim))
+    if dim == 2:
+        rotation = (("angle", ANGLE_BITS),)
+    else:
+        rotation = (("quat_index", 2),) + tuple((f"quat{i}", QUAT_BITS) for i in range(3))
+    return means + stds + rotation + (("weight", WEIGHT_BITS),)
+
+
+def record_bits(dim: int) -> int:
+    return sum(bits for _, bits in record_fields(dim))
+
+
+def stream_bytes(n_components: int, dim: int) -> int:
+    return (n_components * record_bits(dim) + 7) // 8
+
+
+# --- bit packing: K records of fixed-width unsigned fields, LSB-first, one continuous stream
+
+
+def pack_records(columns: list[np.ndarray], widths: list[int]) -> bytes:
+    bits = [(col.astype(np.uint64)[:, None] >> np.arange(w, dtype=np.uint64)) & np.uint64(1)
+            for col, w in zip(columns, widths)]
+    return np.packbits(np.concatenate(bits, axis=1).astype(np.uint8).reshape(-1), bitorder="little").tobytes()
+
+
+def unpack_records(data: bytes, n_records: int, widths: list[int], field: str) -> list[np.ndarray]:
+    total = sum(widths)
+    expected = (n_records * total + 7) // 8
+    if len(data) != expected:
+        raise ProtocolError(field, f"expected {expected} bytes for {n_records} components, got {len(data)}")
+    bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8), bitorder="little")
+    if bits[n_records * total:].any():  # the pad up to a whole byte is zero, so a stream is canonical
+        raise ProtocolError(field, "padding bits after the last component must be zero")
+    records = bits[: n_records * total].reshape(n_records, total).astype(np.int64)
+    offsets = np.cumsum([0] + list(widths))
+    return [records[:, lo:lo + w] @ (np.int64(1) << np.arange(w, dtype=np.int64))
+            for lo, w in zip(offsets[:-1], widths)]
+
+
+# --- rotations, vectorised over components
+
+
+def _quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations -> (K, 4) unit quaternions (w, x, y, z), branch on the largest
+    diagonal term so no component is found by dividing by a tiny number (Shepperd)."""
+    m = R
+    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    candidates = np.stack([
+        np.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], axis=1),
+        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], axis=1),
+        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], axis=1),
+        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1),
+    ], axis=1)  # (K, 4 branches, 4): branch b is 4 q_b * q, whose entry b is 4 q_b^2
+    diag = np.stack([1 + trace, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                     1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1)
+    q = candidates[np.arange(len(R)), np.argmax(diag, axis=1)]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+    ], axis=1)
+
+
+# --- the encoding
+
+
+def quantize(mixture: Mixture) -> tuple[np.ndarray, bytes]:
+    """Mixture -> (bounds, stream): bounds is float32 [lo_0..lo_d-1, hi_0..hi_d-1] of the means.
+
+    Means must fit float32, covariances be symmetric positive definite and weights be
+    non-negative with a positive sum (the codec checks before calling).
+    """
+    d, k = mixture.dim, mixture.n_components
+    if k == 0:
+        return np.zeros(2 * d, dtype=np.float32), b""
+    lo = mixture.means.min(axis=0).astype(np.float32)
+    hi = mixture.means.max(axis=0).astype(np.float32)
+    mean_codes = _quantize_means(mixture.means, lo, hi, MEAN_BITS[d])
+
+    covs = 0.5 * (mixture.covariances + np.swapaxes(mixture.covariances, 1, 2))
+    eigenvalues, axes = np.linalg.eigh(covs)  # ascending; columns of `axes` are the principal axes
+    # eigh can return a tiny negative eigenvalue for a thin component that Cholesky accepts
+    log_std = 0.5 * np.log(np.maximum(eigenvalues, math.exp(2 * LOG_STD_MIN)))
+    if d == 2:
+        rotation_codes, log_std = _quantize_angle(axes, log_std)
+    else:
+        rotation_codes = _quantize_rotation(axes)
+    std_codes = np.clip(np.rint((log_std - LOG_STD_MIN) / LOG_STD_STEP), 0, LOG_STD_CODE_MAX)
+
+    with np.errstate(divide="ignore"):  # a zero weight goes to the smallest code
+        octaves = np.log2(mixture.weights / mixture.weights.max())
+    weight_codes = np.clip(WEIGHT_MAX + np.rint(octaves * WEIGHT_STEPS_PER_OCTAVE), 0, WEIGHT_MAX)
+
+    columns = list(mean_codes.T) + list(std_codes.T) + rotation_codes + [weight_codes]
+    return np.concatenate([lo, hi]), pack_records(columns, [bits for _, bits in record_fields(d)])
+
+
+def dequantize(bounds: np.ndarray, stream: bytes, n_components: int, dim: int, field: str) -> Mixture:
+    """(bounds, stream) -> Mixture with `support` 0 (the caller sets it); raises ProtocolError."""
+    columns = unpack_records(stream, n_components, [bits for _, bits in record_fields(dim)], f"{field}.components")
+    if n_components == 0:
+        return Mixture.empty(dim)
+    lo, hi = bounds[:dim].astype(np.float64), bounds[dim:].astype(np.float64)
+    mean_codes = np.stack(columns[:dim], axis=1)
+    means = lo + mean_codes * ((hi - lo) / (2 ** MEAN_BITS[dim] - 1))
+    log_std = LOG_STD_MIN + np.stack(columns[dim:2 * dim], axis=1) * LOG_STD_STEP
+    if dim == 2:
+        theta = columns[2 * dim] * (0.5 * np.pi / ANGLE_STEPS)
+        c, s = np.cos(theta), np.sin(theta)
+        rotations = np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)
+    else:
+        rotations = _dequantize_rotation(columns[2 * dim], np.stack(columns[2 * dim + 1:2 * dim + 4], axis=1))
+    variances = np.exp(2 * log_std)
+    covs = np.einsum("kij,kj,klj->kil", rotations, variances, rotations)
+    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
+    weights = np.exp2(columns[-1] / WEIGHT_STEPS_PER_OCTAVE)
+    return Mixture(weights / weights.sum(), means, covs, 0)
+
+
+def _quantize_means(means: np.ndarray, lo: np.ndarray, hi: np.ndarray, bits: int) -> np.ndarray:
+    top = 2**bits - 1
+    span = hi.astype(np.float64) - lo.astype(np.float64)
+    scale = np.divide(top, span, out=np.zeros_like(span), where=span > 0)  # a flat axis codes as 0
+    return np.clip(np.rint((means - lo) * scale), 0, top)
+
+
+def _quantize_angle(axes: np.ndarray, log_std: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """2D: the first axis' angle folded into [0, pi/2). Turning the frame by pi/2 swaps the two
+    axes, so a fold by an odd number of quarter turns swaps the standard deviations."""
+    theta = np.arctan2(axes[:, 1, 0], axes[:, 0, 0])
+    quarter_turns = np.floor(theta / (0.5 * np.pi))
+    code = np.rint((theta - quarter_turns * 0.5 * np.pi) / (0.5 * np.pi) * ANGLE_STEPS)
+    swap = (quarter_turns.astype(np.int64) % 2 == 1) ^ (code == ANGLE_STEPS)  # pi/2 wraps to 0
+    log_std = np.where(swap[:, None], log_std[:, ::-1], log_std)
+    return [code % ANGLE_STEPS], log_std
+
+
+def _quantize_rotation(axes: np.ndarray) -> list[np.ndarray]:
+    """3D: principal axes -> quaternion -> index of its largest component (dropped, made
+    positive since q and -q are one rotation) and the other three in index order."""
+    axes = axes.copy()
+    axes[np.linalg.det(axes) < 0, :, 2] *= -1  # eigh may return a reflection
+    q = _quaternion_from_matrix(axes)
+    largest = np.argmax(np.abs(q), axis=1)
+    q *= np.sign(q[np.arange(len(q)), largest])[:, None]
+    keep = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
+    rest = np.take_along_axis(q, keep, axis=1)
+    codes = np.clip(np.rint((rest + QUAT_HALF_RANGE) / (2 * QUAT_HALF_RANGE) * QUAT_MAX), 0, QUAT_MAX)
+    return [largest] + list(codes.T)
+
+
+def _dequantize_rotation(largest: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    rest = codes * (2 * QUAT_HALF_RANGE / QUAT_MAX) - QUAT_HALF_RANGE
+    # Corrupt codes can make the three exceed a unit vector; clamping keeps R a rotation.
+    big = np.sqrt(np.maximum(0.0, 1.0 - np.sum(rest**2, axis=1)))
+    q = np.empty((len(largest), 4))
+    keep = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
+    np.put_along_axis(q, keep, rest, axis=1)
+    q[np.arange(len(q)), largest] = big
+    return _matrix_from_quaternion(q / np.linalg.norm(q, axis=1, keepdims=True))
