@@ -28,8 +28,17 @@ def _progress_bars():
     return start, bars
 
 
-def cmd_replay(args) -> int:
+def _fit_config(args, dim: int):
     from gmm_core import FitConfig
+
+    component_size = args.component_size
+    if component_size is None and dim == 3:
+        component_size = 1.0  # dense 3D scans: about one component per square metre of surface
+    return FitConfig(max_range=args.max_range, points_per_component=args.points_per_component,
+                     component_size=component_size)
+
+
+def cmd_replay(args) -> int:
     from services.datasets import count_scans, read_scans
     from services.render import occupancy_png
     from services.replay import replay
@@ -43,13 +52,10 @@ def cmd_replay(args) -> int:
     scans = list(tqdm(read_scans(args.log, args.format, keep_fraction=args.keep_fraction, seed=args.seed, **options),
                       total=total, desc="read", unit="scan", file=sys.stderr, leave=False))
     start, bars = _progress_bars()
-    component_size = args.component_size
-    if component_size is None and scans and scans[0].pose.dim == 3:
-        component_size = 1.0  # dense 3D scans: one component per square metre of surface or so
-    config = FitConfig(max_range=args.max_range, points_per_component=args.points_per_component,
-                       component_size=component_size)
+    config = _fit_config(args, scans[0].pose.dim if scans else 2)
     result = replay(scans, resolution=args.resolution, bbox=args.bbox, method=args.method, config=config,
-                    seed=args.seed, samples_per_cell=args.samples_per_cell, prior=args.prior, progress=start)
+                    seed=args.seed, samples_per_cell=args.samples_per_cell, prior=args.prior,
+                    encoding=args.encoding, progress=start)
     for bar in bars:
         bar.close()
     g = result.grid
@@ -63,6 +69,38 @@ def cmd_replay(args) -> int:
     print(f"{result.scans} scans, {result.components} components, grid {'x'.join(map(str, g.shape))} "
           f"at {g.resolution} m from {np.round(g.origin, 3).tolist()}, {time.perf_counter() - t0:.1f} s"
           + (f"; wrote {args.out}" if args.out else "") + (f"; wrote {args.png}{view}" if args.png else ""))
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    import json
+
+    from protocol import encode
+    from services.datasets import read_scans
+    from services.replay import fit_scans, scan_message
+
+    scans = list(read_scans(args.log, args.format))
+    dim = scans[0].pose.dim if scans else 2
+    config = _fit_config(args, dim)
+    start, bars = _progress_bars()
+    models = fit_scans(scans, config, start("fit", len(scans)))
+    for bar in bars:
+        bar.close()
+    sizes = [len(encode(scan_message(m, s), args.encoding)) for m, s in zip(models, scans)]
+    # Raw: float32 per beam in 2D (ranges), float32 x, y, z per point in 3D.
+    raw = [4 * (len(s.hits) + len(s.no_return)) * (1 if dim == 2 else 3) for s in scans]
+    components = sum(m.n_components for m in models)
+    report = {
+        "scans": len(scans), "dimension": dim, "encoding": args.encoding, "components": components,
+        "bytes": sum(sizes), "raw_bytes": sum(raw),
+        "bytes_per_component": sum(sizes) / max(components, 1), "bytes_per_scan": sum(sizes) / max(len(scans), 1),
+        "raw_bytes_per_scan": sum(raw) / max(len(scans), 1), "ratio_to_raw": sum(sizes) / max(sum(raw), 1),
+    }
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        for key, value in report.items():
+            print(f"{key:>20}: {value:.2f}" if isinstance(value, float) else f"{key:>20}: {value}")
     return 0
 
 
@@ -86,9 +124,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples-per-cell", type=float, default=4.0)
     p.add_argument("--prior", type=float, default=0.2, help="N_p of Eq. 11")
     p.add_argument("--origin", type=_floats, default=None, help="sensor origin x,y,z of an xyz file")
+    p.add_argument("--encoding", choices=["q", "f32", "none"], default="q",
+                   help="pass every scan model through this wire encoding first (default q)")
     p.add_argument("--out", default=None, help="map.npz")
     p.add_argument("--png", default=None, help="map.png")
     p.set_defaults(run=cmd_replay)
+
+    p = sub.add_parser("inspect", help="fit a log and report encoded bytes against the raw scans")
+    p.add_argument("log")
+    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz"], default=None)
+    p.add_argument("--encoding", choices=["q", "f32"], default="q")
+    p.add_argument("--max-range", type=float, default=10.0)
+    p.add_argument("--points-per-component", type=float, default=3.0)
+    p.add_argument("--component-size", type=float, default=None)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=cmd_inspect)
     return parser
 
 
@@ -96,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError) as exc:  # DatasetError and ProtocolError are ValueErrors
         print(f"gmmap {args.command}: {exc}", file=sys.stderr)
         return 2
 

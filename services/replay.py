@@ -10,6 +10,8 @@ from gmm_core import FitConfig, Grid, ScanModel, fit_scan
 from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
 from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
+from gmm_core.pose import Pose
+from protocol import ScanMessage, decode, encode
 from services.datasets import RangeScan
 
 METHODS = ("mc", "raw")
@@ -33,6 +35,19 @@ def data_extent(scans: Sequence[RangeScan], max_range: float, margin: float = 0.
     return points.min(axis=0) - margin, points.max(axis=0) + margin
 
 
+def scan_message(model: ScanModel, scan: RangeScan, fleet: str = "replay", robot: str = "replay") -> ScanMessage:
+    """The message a robot agent would publish for this scan (node = scan index)."""
+    return ScanMessage(fleet, robot, scan.index, scan.stamp, model, scan.pose)
+
+
+def through_wire(model: ScanModel, encoding: str) -> ScanModel:
+    """The model as a server decodes it after `encoding` ("none": untouched)."""
+    if encoding == "none":
+        return model
+    message = ScanMessage("replay", "replay", 0, 0.0, model, Pose.identity(model.dim))
+    return decode(encode(message, encoding), expect=ScanMessage).model
+
+
 def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
               progress: Callable[[int], None] | None = None) -> list[ScanModel]:
     models = []
@@ -46,12 +61,12 @@ def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
 def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[float] | None = None,
            method: str = "mc", config: FitConfig = FitConfig(), seed: int = 0,
            samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
-           transcode: Callable[[ScanModel], ScanModel] | None = None,
+           encoding: str = "q",
            progress: Callable[[str, int, int], Callable[[int], None]] | None = None) -> ReplayMap:
     """The occupancy map of `scans` on the grid of `bbox` (min corner exact) or the data's extent.
 
-    `transcode` passes every scan model through the wire format first, so the offline map
-    equals what a server builds. `progress(stage, total)` returns a callback told of work done.
+    Every scan model passes through the wire `encoding` ("q", "f32" or "none") first, so the
+    offline map equals what a server builds. `progress(stage, total)` returns a callback told of work done.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -71,9 +86,7 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
                                    tick("trace", len(scans)))
         components = 0
     else:
-        models = fit_scans(scans, config, tick("fit", len(scans)))
-        if transcode is not None:
-            models = [transcode(m) for m in models]
+        models = [through_wire(m, encoding) for m in fit_scans(scans, config, tick("fit", len(scans)))]
         components = sum(m.n_components for m in models)
         hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
                                    samples_per_cell=samples_per_cell, progress=tick("trace", len(scans)))

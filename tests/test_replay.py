@@ -60,3 +60,25 @@ def test_bad_log_gives_a_clear_error_with_the_line(tmp_path, capsys):
 def test_wrong_bbox_dimension_is_refused(data_dir, capsys):
     assert main(["replay", str(data_dir / "carmen" / "intel-corrected.log.gz"), "--bbox=0,0,1"]) == 2
     assert "bbox" in capsys.readouterr().err
+
+
+def test_replay_through_each_encoding_gives_nearly_the_same_map(data_dir, tmp_path):
+    log = str(data_dir / "carmen" / "intel-corrected.log.gz")
+    maps = {}
+    for encoding in ("none", "f32", "q"):
+        out = tmp_path / f"{encoding}.npz"
+        assert main(["replay", log, "--bbox=-10,-10,5,5", "--resolution", "0.1", "--encoding", encoding,
+                     "--out", str(out)]) == 0
+        maps[encoding] = np.load(out)["prob"]
+    # Rounding moves a sample by micrometres (f32) or millimetres (q): a few samples change cell.
+    assert np.abs(maps["f32"] - maps["none"]).mean() < 1e-3
+    assert np.abs(maps["q"] - maps["none"]).mean() < 0.01
+
+
+def test_inspect_reports_bytes_against_raw(data_dir, capsys):
+    import json
+
+    assert main(["inspect", str(data_dir / "carmen" / "intel-corrected.log.gz"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["scans"] == 910 and report["raw_bytes"] == 910 * 180 * 4
+    assert report["bytes"] / report["components"] <= 10.0  # issue 4: <= 10 B per 2D component
