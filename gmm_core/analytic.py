@@ -49,7 +49,7 @@ REACH_SIGMA = 5.0  # culling: a component reaches cells within the cone of its 5
 _GL6_X, _GL6_W = (a[:3].copy() for a in np.polynomial.legendre.leggauss(6))
 _GL12_X, _GL12_W = (a[:6].copy() for a in np.polynomial.legendre.leggauss(12))
 _GL20_X, _GL20_W = (a[:10].copy() for a in np.polynomial.legendre.leggauss(20))
-# Gauss-Legendre rule on [-1, 1] for the slices of a cube (box_mass_3d).
+# Gauss-Legendre rule on [-1, 1] for the slices of a cube (_cube_masses_3d).
 _SLICE_X, _SLICE_W = np.polynomial.legendre.leggauss(6)
 
 
@@ -374,165 +374,453 @@ def _cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
 # 3D: one component, one cube
 # ---------------------------------------------------------------------------------------------
 
-@njit(cache=True)
-def _corner_offset(index, axis, half):
-    return half if (index >> axis) & 1 else -half
+SLICE_HALF_WIDTH = 9.0  # slices are clipped to |u|, |v| <= 9 (isotropic): the mass outside is < 1e-18
 
 
 @njit(cache=True)
-def _slice_polygon(zs, us, vs, z, out_x, out_y):
-    """The cube's section at normal offset z, as a ccw polygon in in-plane isotropic coordinates."""
-    n = 0
-    for a in range(8):
-        for axis in range(3):
-            b = a | (1 << axis)
-            if b == a:
-                continue
-            za, zb = zs[a], zs[b]
-            if za == zb or (za - z) * (zb - z) > 0.0:
-                continue
-            f = (z - za) / (zb - za)
-            out_x[n] = us[a] + f * (us[b] - us[a])
-            out_y[n] = vs[a] + f * (vs[b] - vs[a])
-            n += 1
-    if n < 3:
-        return 0
-    mx, my = out_x[:n].mean(), out_y[:n].mean()
-    angles = np.arctan2(out_y[:n] - my, out_x[:n] - mx)
-    order = np.argsort(angles)
-    sx, sy = out_x[:n][order], out_y[:n][order]
-    out_x[:n] = sx
-    out_y[:n] = sy
-    return n
-
-
-@njit(cache=True)
-def _box_mass_3d(mean, evals, evecs, cx, cy, cz, half, out_x, out_y):
-    """Eq. 10 over a cube: integral over the offset z along the thinnest eigenvector of the exact
-    mass of the cube's section (in-plane coordinates are independent of z in the eigenbasis),
-    with Gauss-Legendre in the probability of z between the offsets of the cube's corners."""
-    sn = math.sqrt(evals[0])
-    s1 = math.sqrt(evals[1])
-    s2 = math.sqrt(evals[2])
-    zs = np.empty(9)
-    us = np.empty(8)
-    vs = np.empty(8)
+def _cube_corners(cx, cy, cz, half):
+    """The 8 corners; bit a of the index set means the upper side along axis a."""
+    corners = np.empty((8, 3))
     for k in range(8):
-        d0 = cx + _corner_offset(k, 0, half) - mean[0]
-        d1 = cy + _corner_offset(k, 1, half) - mean[1]
-        d2 = cz + _corner_offset(k, 2, half) - mean[2]
-        zs[k] = evecs[0, 0] * d0 + evecs[1, 0] * d1 + evecs[2, 0] * d2
-        us[k] = (evecs[0, 1] * d0 + evecs[1, 1] * d1 + evecs[2, 1] * d2) / s1
-        vs[k] = (evecs[0, 2] * d0 + evecs[1, 2] * d1 + evecs[2, 2] * d2) / s2
-    zs[8] = min(max(0.0, zs[:8].min()), zs[:8].max())  # split at the mean: tails in their own terms
-    breaks = np.sort(zs)
-    total = 0.0
-    for i in range(8):
+        corners[k, 0] = cx + (half if k & 1 else -half)
+        corners[k, 1] = cy + (half if k & 2 else -half)
+        corners[k, 2] = cz + (half if k & 4 else -half)
+    return corners
+
+
+@njit(cache=True)
+def _cube_halfspaces(corners, sensor, normals, offsets):
+    """Rows normals[i] . x >= offsets[i]: rows 0-5 the cube; from row 6 on, the region beyond the
+    cube's entry seen from the sensor, C(V) = (cone from the sensor over the cube) cut by the far
+    sides of the faces the sensor sees. Returns the number of rows of C(V)."""
+    lo, hi = corners[0], corners[7]
+    front = np.zeros((3, 2), dtype=np.bool_)
+    for a in range(3):
+        normals[2 * a] = 0.0
+        normals[2 * a, a] = 1.0
+        offsets[2 * a] = lo[a]
+        normals[2 * a + 1] = 0.0
+        normals[2 * a + 1, a] = -1.0
+        offsets[2 * a + 1] = -hi[a]
+        front[a, 0] = sensor[a] < lo[a]
+        front[a, 1] = sensor[a] > hi[a]
+    n = 6
+    for a in range(3):
+        for side in range(2):
+            if front[a, side]:  # the far side of a visible face is the cube's own half-space
+                normals[n] = normals[2 * a + side]
+                offsets[n] = offsets[2 * a + side]
+                n += 1
+    centre = 0.5 * (lo + hi)
+    for a in range(3):  # silhouette edges (one adjacent face seen, the other not): cone facets
+        u, v = (a + 1) % 3, (a + 2) % 3
+        for bu in range(2):
+            for bv in range(2):
+                if front[u, bu] == front[v, bv]:
+                    continue
+                k = (bu << u) | (bv << v)
+                g = np.cross(corners[k] - sensor, corners[k | (1 << a)] - sensor)
+                norm = math.sqrt(g @ g)
+                if norm == 0.0:
+                    continue  # the edge points at the sensor: its neighbours bound the cone
+                if g @ (centre - sensor) < 0.0:
+                    g = -g
+                normals[n] = g / norm
+                offsets[n] = normals[n] @ sensor
+                n += 1
+    return n - 6
+
+
+@njit(cache=True)
+def _clipped_slice_mass(alpha, beta, gamma, first, count, xa, ya, xb, yb):
+    """Exact standard normal mass of {(u, v): alpha u + beta v >= gamma} over rows first..first+count,
+    clipped to the square |u|, |v| <= SLICE_HALF_WIDTH (Sutherland-Hodgman, then Brianchon-Gram)."""
+    w = SLICE_HALF_WIDTH
+    xa[0], ya[0], xa[1], ya[1], xa[2], ya[2], xa[3], ya[3] = -w, -w, w, -w, w, w, -w, w
+    n = 4
+    for i in range(first, first + count):
+        m = 0
+        for j in range(n):
+            k = (j + 1) % n
+            fj = alpha[i] * xa[j] + beta[i] * ya[j] - gamma[i]
+            fk = alpha[i] * xa[k] + beta[i] * ya[k] - gamma[i]
+            if fj >= 0.0:
+                xb[m], yb[m] = xa[j], ya[j]
+                m += 1
+            if (fj >= 0.0) != (fk >= 0.0):
+                f = fj / (fj - fk)
+                xb[m], yb[m] = xa[j] + f * (xa[k] - xa[j]), ya[j] + f * (ya[k] - ya[j])
+                m += 1
+        if m < 3:
+            return 0.0
+        n = m
+        xa[:n], ya[:n] = xb[:n], yb[:n]
+    return _polygon_mass_exact(xa, ya, n)
+
+
+@njit(cache=True)
+def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
+    """(mass of the cube, mass of C(V)) for N(mean, Sigma), by slices across the thinnest axis.
+
+    In the eigenbasis the offset z along the thinnest eigenvector is independent of the in-plane
+    coordinates, so each mass is the integral over z of the exact mass of a convex slice (Eq. 10
+    for the cube). The slices change shape only at the corners' offsets: Gauss-Legendre runs
+    between them, in t = Phi(z / sigma) so the Gaussian weight is absorbed.
+    """
+    normals = np.empty((16, 3))
+    offsets = np.empty(16)
+    n_cone = _cube_halfspaces(corners, sensor, normals, offsets) if with_cone else 0
+    rows = 6 + n_cone
+    sn = math.sqrt(evals[0])
+    axes = np.ascontiguousarray(evecs.T)  # rows: the eigenvectors, thinnest first
+    normal, e1, e2 = axes[0], axes[1], axes[2]
+    alpha = np.empty(rows)
+    beta = np.empty(rows)
+    gamma0 = np.empty(rows)
+    gamma1 = np.empty(rows)
+    for i in range(rows):  # row in slice coordinates: alpha u + beta v >= gamma0 - z gamma1
+        alpha[i] = math.sqrt(evals[1]) * (normals[i] @ e1)
+        beta[i] = math.sqrt(evals[2]) * (normals[i] @ e2)
+        gamma0[i] = offsets[i] - normals[i] @ mean
+        gamma1[i] = normals[i] @ normal
+    breaks = np.empty(11)
+    for k in range(8):
+        breaks[k + 1] = normal @ (corners[k] - mean)
+    z_lo, z_hi = breaks[1:9].min(), breaks[1:9].max()
+    breaks[9] = 0.0
+    breaks[0], breaks[10] = (-np.inf, np.inf) if with_cone else (z_lo, z_hi)
+    breaks.sort()
+    gamma = np.empty(rows)
+    xa, ya, xb, yb = np.empty(32), np.empty(32), np.empty(32), np.empty(32)
+    cube_mass, cone_mass = 0.0, 0.0
+    for i in range(10):
         za, zb = breaks[i], breaks[i + 1]
-        if zb <= za:
+        if not zb > za:
             continue
-        # Lower half in t = Phi(z/sn), upper half in t = Q(z/sn): z = -+ sn Phi^-1(t).
-        upper = za + zb > 0.0
-        sign = 1.0 if upper else -1.0
-        ta = _norm_sf(sign * za / sn)
-        tb = _norm_sf(sign * zb / sn)
+        sign = 1.0 if za + zb > 0.0 or zb == np.inf else -1.0
+        ta, tb = _norm_sf(sign * za / sn), _norm_sf(sign * zb / sn)
         width = abs(tb - ta)
         if width < 1e-16:
             continue
+        in_cube = za >= z_lo and zb <= z_hi
         for g in range(_SLICE_X.shape[0]):
             t = min(ta, tb) + 0.5 * width * (_SLICE_X[g] + 1.0)
             z = -sign * sn * _norm_ppf_lower(t)
-            n = _slice_polygon(zs, us, vs, z, out_x, out_y)
-            total += 0.5 * width * _SLICE_W[g] * _polygon_mass_exact(out_x, out_y, n)
-    return min(total, 1.0)
+            weight = 0.5 * width * _SLICE_W[g]
+            gamma[:] = gamma0 - z * gamma1
+            if in_cube:
+                cube_mass += weight * _clipped_slice_mass(alpha, beta, gamma, 0, 6, xa, ya, xb, yb)
+            if with_cone:
+                cone_mass += weight * _clipped_slice_mass(alpha, beta, gamma, 6, n_cone, xa, ya, xb, yb)
+    return min(cube_mass, 1.0), min(max(cone_mass, cube_mass), 1.0)
 
 
 @njit(cache=True)
-def _face_shadow_eq9(ws, face, b, t1, t2, p, clip, fx, fy):
-    """One cube face: the mass of its shadow, cast from the sensor onto the plane across the beam
-    through the mean (Eq. 6-9), times the radial tail beyond the face (Eq. 4, inner integral).
-
-    ws: the cube's corners relative to the sensor, isotropic frame; b: beam direction; t1, t2:
-    across the beam. Parts of the face at depth <= 0 (beside or behind the sensor) are clipped:
-    their rays never reach the plane.
-    """
-    depth_min = 1e-9 * max(p, 1.0)
-    n = 0
-    for i in range(4):
-        a = face[i]
-        c = face[(i + 1) % 4]
-        da = ws[a] @ b
-        dc = ws[c] @ b
-        if da >= depth_min:
-            clip[n] = ws[a]
-            n += 1
-        if (da >= depth_min) != (dc >= depth_min):
-            clip[n] = ws[a] + (depth_min - da) / (dc - da) * (ws[c] - ws[a])
-            n += 1
-    if n < 3:
-        return 0.0
-    for i in range(n):
-        scale = p / (clip[i] @ b)
-        fx[i] = (clip[i] @ t1) * scale
-        fy[i] = (clip[i] @ t2) * scale
-    _make_ccw(fx, fy, n)
-    shadow = _polygon_mass_eq9(fx, fy, n)
-    centre = 0.25 * (ws[face[0]] + ws[face[1]] + ws[face[2]] + ws[face[3]])
-    r_face = math.sqrt(centre @ centre)
-    cos_theta = (centre @ b) / r_face
-    return shadow * 0.5 * math.erfc((r_face - p * cos_theta) / SQRT2)
+def _convex_hull(xs, ys, n):
+    """Indices of the convex hull of n points, counter-clockwise (Andrew's monotone chain)."""
+    order = np.argsort(xs[:n] + 1e-12 * ys[:n])
+    hull = np.empty(2 * n, dtype=np.int64)
+    m = 0
+    for rep in range(2):
+        start = m
+        for j in range(n):
+            i = order[j] if rep == 0 else order[n - 1 - j]
+            while m - start >= 2:
+                a, b = hull[m - 2], hull[m - 1]
+                if (xs[b] - xs[a]) * (ys[i] - ys[a]) - (ys[b] - ys[a]) * (xs[i] - xs[a]) > 0.0:
+                    break
+                m -= 1
+            hull[m] = i
+            m += 1
+        m -= 1  # the last point of each chain starts the other
+    return hull[:m]
 
 
 @njit(cache=True)
-def _beyond_3d(iso, mean, sensor, cx, cy, cz, half, exit_faces, ws, clip, fx, fy):
-    """Mass beyond the cube on rays from the sensor (exit_faces) or beyond its entry (not exit_faces)."""
-    q = iso @ (sensor - mean)
-    p = math.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2)
-    b = -q / p if p > 0.0 else np.array([1.0, 0.0, 0.0])
+def _shadow_mass_eq9(ws, b, p):
+    """Eq. 6-9: mass of the cube's shadow, cast from the sensor onto the plane through the mean
+    across the beam (isotropic frame; ws: corners relative to the sensor, all in front of it)."""
     t1 = np.array([-b[1], b[0], 0.0]) if abs(b[2]) < 0.9 else np.array([0.0, -b[2], b[1]])
-    t1 /= math.sqrt(t1[0] ** 2 + t1[1] ** 2 + t1[2] ** 2)
-    t2 = np.array([b[1] * t1[2] - b[2] * t1[1], b[2] * t1[0] - b[0] * t1[2], b[0] * t1[1] - b[1] * t1[0]])
-    centre = iso @ (np.array([cx, cy, cz]) - mean) - q
-    radius = 0.0
+    t1 /= math.sqrt(t1 @ t1)
+    t2 = np.cross(b, t1)
+    xs, ys = np.empty(8), np.empty(8)
     for k in range(8):
-        d = np.array([cx + _corner_offset(k, 0, half), cy + _corner_offset(k, 1, half),
-                      cz + _corner_offset(k, 2, half)]) - mean
-        ws[k] = iso @ d - q
-        radius = max(radius, math.sqrt(((ws[k] - centre) ** 2).sum()))
-    dist = math.sqrt((centre ** 2).sum())
-    if dist - radius > p + NEGLIGIBLE_SIGMA:
-        return 0.0  # behind the component
-    if dist > radius and p > NEGLIGIBLE_SIGMA:
-        off_axis = math.acos(min(1.0, max(-1.0, (centre @ b) / dist)))
-        if off_axis > math.asin(radius / dist) + math.asin(NEGLIGIBLE_SIGMA / p):
-            return 0.0  # the cube's cone passes the component by
-    face = np.empty(4, dtype=np.int64)
-    total = 0.0
-    lo_hi = (cx - half, cy - half, cz - half, cx + half, cy + half, cz + half)
-    for axis in range(3):
-        for side in range(2):
-            outward = sensor[axis] - lo_hi[axis + 3 * side] if side else lo_hi[axis] - sensor[axis]
-            if outward == 0.0 or (outward < 0.0) != exit_faces:
-                continue  # keep faces with the sensor on their inner side (exit) or outer side (entry)
-            u, v = (axis + 1) % 3, (axis + 2) % 3
-            base = side << axis
-            face[0] = base
-            face[1] = base | (1 << u)
-            face[2] = base | (1 << u) | (1 << v)
-            face[3] = base | (1 << v)
-            total += _face_shadow_eq9(ws, face, b, t1, t2, p, clip, fx, fy)
-    return min(total, 1.0)
+        scale = p / (ws[k] @ b)
+        xs[k] = (ws[k] @ t1) * scale
+        ys[k] = (ws[k] @ t2) * scale
+    hull = _convex_hull(xs, ys, 8)
+    return _polygon_mass_eq9(xs[hull], ys[hull], hull.shape[0])
 
 
 @njit(cache=True)
-def _cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, half, ws, clip, fx, fy):
+def _cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, half):
     """(hits, misses) of one component in one cube, as fractions of its mass."""
-    centre = iso @ (np.array([cx, cy, cz]) - mean)
-    reach = math.sqrt((centre ** 2).sum()) - math.sqrt(3.0) * half / math.sqrt(evals[0])
-    mass = 0.0
-    if reach < NEGLIGIBLE_SIGMA + 1.0:
-        mass = _box_mass_3d(mean, evals, evecs, cx, cy, cz, half, fx, fy)
+    corners = _cube_corners(cx, cy, cz, half)
     if abs(sensor[0] - cx) <= half and abs(sensor[1] - cy) <= half and abs(sensor[2] - cz) <= half:
+        mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, False)[0]
         return (0.0, 1.0) if max_range else (mass, 1.0 - mass)
-    beyond = _beyond_3d(iso, mean, sensor, cx, cy, cz, half, not max_range, ws, clip, fx, fy)
-    return (0.0, beyond) if max_range else (mass, beyond)
+    q = iso @ (sensor - mean)
+    p = math.sqrt(q @ q)
+    ws = (corners - mean) @ iso.T - q  # corners relative to the sensor, isotropic frame
+    centre = iso @ (np.array([cx, cy, cz]) - mean) - q
+    dist = math.sqrt(centre @ centre)
+    radius, r_far, all_front = 0.0, 0.0, p > 0.0
+    for k in range(8):
+        radius = max(radius, math.sqrt((ws[k] - centre) @ (ws[k] - centre)))
+        r_far = max(r_far, math.sqrt(ws[k] @ ws[k]))
+        all_front = all_front and ws[k] @ q < 0.0
+    if dist - radius > p + NEGLIGIBLE_SIGMA:
+        return 0.0, 0.0  # behind the component
+    if p > NEGLIGIBLE_SIGMA + 1.0:
+        b = -q / p
+        off_axis = math.acos(min(1.0, max(-1.0, (centre @ b) / dist))) if dist > radius else 0.0
+        if off_axis > math.asin(min(1.0, radius / dist)) + math.asin(NEGLIGIBLE_SIGMA / p):
+            return 0.0, 0.0  # the cube's cone passes the component by
+        if all_front and r_far < p - NEGLIGIBLE_SIGMA:
+            return 0.0, _shadow_mass_eq9(ws, b, p)  # well in front: the paper's Eq. 9
+    mass, beyond_entry = _cube_masses_3d(mean, evals, evecs, sensor, corners, True)
+    return (0.0, beyond_entry) if max_range else (mass, max(beyond_entry - mass, 0.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Batches: many cells, many components
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def _may_reach(cell, rho, sensor, axis, dist_mean, reach, half_angle):
+    """Whether a cell (centre, bounding radius rho) meets the cone from the sensor over the ball
+    of radius `reach` around the component's mean, truncated behind the ball: cheap culling."""
+    dist_sq = 0.0
+    along = 0.0
+    for i in range(cell.shape[0]):
+        d = cell[i] - sensor[i]
+        dist_sq += d * d
+        along += d * axis[i]
+    dist = math.sqrt(dist_sq)
+    if dist > dist_mean + reach + rho:
+        return False
+    if dist <= rho or dist_mean <= reach:
+        return True
+    opening = half_angle + math.asin(rho / dist)
+    return opening >= math.pi or along >= dist * math.cos(opening)
+
+
+@njit(cache=True, parallel=True)
+def _evidence_at_cells(centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts,
+                       axes, dist_means, reaches, half_angles):
+    """Expected hits and misses at each cell from every component that may reach it."""
+    n_cells, dim = centers.shape
+    hits = np.zeros(n_cells)
+    misses = np.zeros(n_cells)
+    rho = half * math.sqrt(dim)
+    for c in prange(n_cells):
+        fx = np.empty(4)
+        fy = np.empty(4)
+        cell = centers[c]
+        for k in range(means.shape[0]):
+            if not _may_reach(cell, rho, sensors[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
+                continue
+            if dim == 2:
+                h, m = _cell_evidence_2d(means[k], covs[k], isos[k], sensors[k], max_range[k],
+                                         cell[0], cell[1], half, fx, fy)
+            else:
+                h, m = _cell_evidence_3d(means[k], evals[k], evecs[k], isos[k], sensors[k], max_range[k],
+                                         cell[0], cell[1], cell[2], half)
+            hits[c] += counts[k] * h
+            misses[c] += counts[k] * m
+    return hits, misses
+
+
+@njit(cache=True, parallel=True)
+def _map_2d(grid_origin, resolution, nx, ny, means, covs, isos, sensors, max_range, counts,
+            axes, dist_means, reaches, half_angles, n_chunks):
+    """Expected hits and misses on a 2D grid: each component visits the cells of its cone's box.
+
+    Components are dealt round-robin to n_chunks workers, each adding into its own copy of the
+    counts (counts are additive), summed at the end.
+    """
+    acc_hits = np.zeros((n_chunks, ny, nx))
+    acc_misses = np.zeros((n_chunks, ny, nx))
+    half = 0.5 * resolution
+    rho = half * math.sqrt(2.0)
+    for chunk in prange(n_chunks):
+        fx = np.empty(4)
+        fy = np.empty(4)
+        cell = np.empty(2)
+        for k in range(chunk, means.shape[0], n_chunks):
+            s, mu, r = sensors[k], means[k], reaches[k]
+            lo_x = int(math.floor((min(s[0], mu[0] - r) - grid_origin[0]) / resolution))
+            hi_x = int(math.floor((max(s[0], mu[0] + r) - grid_origin[0]) / resolution))
+            lo_y = int(math.floor((min(s[1], mu[1] - r) - grid_origin[1]) / resolution))
+            hi_y = int(math.floor((max(s[1], mu[1] + r) - grid_origin[1]) / resolution))
+            for iy in range(max(lo_y, 0), min(hi_y, ny - 1) + 1):
+                cell[1] = grid_origin[1] + (iy + 0.5) * resolution
+                for ix in range(max(lo_x, 0), min(hi_x, nx - 1) + 1):
+                    cell[0] = grid_origin[0] + (ix + 0.5) * resolution
+                    if not _may_reach(cell, rho, s, axes[k], dist_means[k], r, half_angles[k]):
+                        continue
+                    h, m = _cell_evidence_2d(mu, covs[k], isos[k], s, max_range[k], cell[0], cell[1], half, fx, fy)
+                    acc_hits[chunk, iy, ix] += counts[k] * h
+                    acc_misses[chunk, iy, ix] += counts[k] * m
+    return acc_hits.sum(axis=0), acc_misses.sum(axis=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------------
+
+def _isotropic_maps(covs: np.ndarray):
+    """Eigen-decomposition Sigma = V S V^T (ascending S) and the isotropic map S^-1/2 V^T (Sec. III-C)."""
+    evals, evecs = np.linalg.eigh(covs)
+    floor = np.maximum(evals[..., -1:] * 1e-14, 1e-300)  # keeps a numerically singular Sigma finite
+    evals = np.maximum(evals, floor)
+    isos = np.swapaxes(evecs, -1, -2) / np.sqrt(evals)[..., :, None]
+    return evals, np.ascontiguousarray(evecs), np.ascontiguousarray(isos)
+
+
+def _as_cells(centers, cell_size: float, dim: int) -> tuple[np.ndarray, float]:
+    centers = np.ascontiguousarray(np.asarray(centers, dtype=np.float64).reshape(-1, dim))
+    if not (np.isfinite(cell_size) and cell_size > 0):
+        raise ValueError(f"cell_size must be positive, got {cell_size}")
+    return centers, 0.5 * float(cell_size)
+
+
+def component_evidence(mean, cov, origin, centers, cell_size: float, *,
+                       max_range: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Hits and misses one Gaussian component gives each cell, as fractions of its mass.
+
+    mean (d,), cov (d, d), origin (d,): the sensor; centers (M, d), cell_size: axis-aligned
+    squares (d = 2) or cubes (d = 3). Hits are Eq. 10 (zero for a max-range component); misses
+    the mass beyond the cell on rays from the origin (Eq. 3-9), plus the mass inside the cell
+    for a max-range component. Multiply by N pi_k for expected counts.
+    """
+    mean = np.asarray(mean, dtype=np.float64).reshape(1, -1)
+    cov = np.asarray(cov, dtype=np.float64).reshape(1, mean.shape[1], mean.shape[1])
+    centers, half = _as_cells(centers, cell_size, mean.shape[1])
+    evals, evecs, isos = _isotropic_maps(cov)
+    sensor = np.asarray(origin, dtype=np.float64).reshape(1, -1)
+    everywhere = (np.ones_like(mean), np.zeros(1), np.full(1, np.inf), np.full(1, np.pi))  # no culling
+    return _evidence_at_cells(centers, half, mean, cov, isos, evals, evecs, sensor, np.array([bool(max_range)]),
+                              np.ones(1), *everywhere)
+
+
+@numba.vectorize(["float64(float64, float64, float64, float64)"], cache=True)
+def eq5(p, theta1, theta2, r_prime):
+    """Eq. 5 as printed, a ufunc: the mass of N((p, 0), I) seen from the origin within angles
+    theta1..theta2 beyond radius r'. It drops the first term of Eq. 4 and evaluates its erfc at
+    theta = 0: exact to ~1e-10 for p > 8 and r' < p - 7, cruder near the component."""
+    return _eq5(p, math.sin(theta1), math.sin(theta2), r_prime)
+
+
+def eq5_geometry(mean, cov, origin, centers, cell_size: float):
+    """The quantities of Eq. 5 for square cells seen from `origin`: (p, theta1, theta2, r').
+
+    Isotropic map of the component, rotation of the sensor -> mean direction onto the x-axis
+    with the sensor at the origin: p is the distance of the mean, theta1 <= theta2 bound the
+    transformed cell as seen from the sensor, r' is the cell's closest radial distance.
+    """
+    mean = np.asarray(mean, dtype=np.float64)
+    centers, half = _as_cells(centers, cell_size, 2)
+    _, _, iso = _isotropic_maps(np.asarray(cov, dtype=np.float64))
+    q = iso @ (np.asarray(origin, dtype=np.float64) - mean)
+    p = float(np.hypot(*q))
+    beam = -q / p
+    to_frame = np.array([beam, [-beam[1], beam[0]]])  # rows: x along the beam, y across
+    signs = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+    corners = centers[:, None, :] + half * signs[None]  # (M, 4, 2), ccw
+    local = (corners - mean) @ iso.T - q
+    local = local @ to_frame.T
+    angles = np.arctan2(local[..., 1], local[..., 0])
+    theta1, theta2 = angles.min(axis=1), angles.max(axis=1)
+    ends = np.roll(local, -1, axis=1)
+    edge = ends - local
+    t = np.clip(-(local * edge).sum(-1) / np.maximum((edge * edge).sum(-1), 1e-300), 0.0, 1.0)
+    r_prime = np.linalg.norm(local + t[..., None] * edge, axis=-1).min(axis=1)
+    return np.full(len(centers), p), theta1, theta2, r_prime
+
+
+def polygon_mass(vertices, *, approximate: bool = False) -> float:
+    """Standard bivariate normal mass of a convex polygon (corners (n, 2), either orientation).
+
+    Exact (Brianchon-Gram over bivariate normal orthants), or with approximate=True Green's
+    theorem with the erf approximation of Eq. 7 (Eq. 6-9; absolute error below 0.01).
+    """
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 2)
+    xs, ys = v[:, 0].copy(), v[:, 1].copy()
+    _make_ccw(xs, ys, len(v))
+    return float((_polygon_mass_eq9 if approximate else _polygon_mass_exact)(xs, ys, len(v)))
+
+
+class _Components:
+    """Every component of some scan models in the world frame, with what culling needs."""
+
+    def __init__(self, models_with_poses, dim: int):
+        means, covs, sensors, counts, max_range = [], [], [], [], []
+        for model, pose in models_with_poses:
+            if model.dim != dim:
+                raise ValueError(f"scan model is {model.dim}D, cells are {dim}D")
+            sensor = pose.apply(model.origin[None])[0]
+            for mixture, is_free in ((model.occupied, False), (model.free, True)):
+                if mixture.n_components == 0:
+                    continue
+                world = mixture.transformed(pose)
+                means.append(world.means)
+                covs.append(world.covariances)
+                sensors.append(np.broadcast_to(sensor, world.means.shape))
+                counts.append(world.support * world.weights)
+                max_range.append(np.full(world.n_components, is_free))
+        if not means:
+            means, covs, sensors = [np.zeros((0, dim))], [np.zeros((0, dim, dim))], [np.zeros((0, dim))]
+            counts, max_range = [np.zeros(0)], [np.zeros(0, bool)]
+        self.means = np.ascontiguousarray(np.concatenate(means))
+        self.covs = np.ascontiguousarray(np.concatenate(covs))
+        self.sensors = np.ascontiguousarray(np.concatenate(sensors))
+        self.counts = np.concatenate(counts).astype(np.float64)
+        self.max_range = np.concatenate(max_range).astype(np.bool_)
+        self.evals, self.evecs, self.isos = _isotropic_maps(self.covs)
+        offset = self.means - self.sensors
+        self.dist_means = np.linalg.norm(offset, axis=1)
+        self.axes = np.ascontiguousarray(offset / np.maximum(self.dist_means, 1e-300)[:, None])
+        self.reaches = REACH_SIGMA * np.sqrt(self.evals[:, -1]) if len(self.means) else np.zeros(0)
+        self.half_angles = np.arcsin(np.minimum(self.reaches / np.maximum(self.dist_means, 1e-300), 1.0))
+
+    def cone_args(self):
+        return self.axes, self.dist_means, self.reaches, self.half_angles
+
+
+def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Expected hit and miss counts (N_H, N_M of Eq. 11) at each cell from scan models with world
+    poses, a list of (ScanModel, Pose). Only components whose 5-sigma cone reaches a cell count."""
+    models_with_poses = list(models_with_poses)
+    dim = models_with_poses[0][0].dim if models_with_poses else np.shape(centers)[-1]
+    centers, half = _as_cells(centers, cell_size, dim)
+    comp = _Components(models_with_poses, dim)
+    return _evidence_at_cells(centers, half, comp.means, comp.covs, comp.isos, comp.evals, comp.evecs,
+                              comp.sensors, comp.max_range, comp.counts, *comp.cone_args())
+
+
+def occupancy_at_cells(models_with_poses, centers, cell_size: float,
+                       prior: float = DEFAULT_PRIOR) -> np.ndarray:
+    """p(occupied) of each cell, Eq. 11, from the analytic evidence of scan models with world poses.
+
+    models_with_poses: list of (ScanModel, Pose); centers (M, d); cell_size: side of the square
+    or cube; prior: N_p. Local occupancy evaluation for a few cells, without a grid.
+    """
+    hits, misses = scan_evidence(models_with_poses, centers, cell_size)
+    return map_estimate(hits, misses, prior)
+
+
+def analytic_map_2d(models_with_poses, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Expected hit and miss counts over a 2D grid, the analytic counterpart of reconstruct().
+
+    Returns float64 arrays of grid.array_shape ([iy, ix]); Eq. 11 (map_estimate) turns them
+    into probabilities.
+    """
+    if grid.dim != 2:
+        raise ValueError("analytic_map_2d: the grid must be 2D")
+    comp = _Components(models_with_poses, 2)
+    ny, nx = grid.array_shape
+    budget = 512 * 2**20  # bytes for the per-worker copies of the counts
+    n_chunks = int(max(1, min(4 * numba.get_num_threads(), budget // (16 * nx * ny))))
+    return _map_2d(grid.origin, grid.resolution, nx, ny, comp.means, comp.covs, comp.isos, comp.sensors,
+                   comp.max_range, comp.counts, *comp.cone_args(), n_chunks)

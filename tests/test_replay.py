@@ -70,8 +70,9 @@ def test_replay_through_each_encoding_gives_nearly_the_same_map(data_dir, tmp_pa
         assert main(["replay", log, "--bbox=-10,-10,5,5", "--resolution", "0.1", "--encoding", encoding,
                      "--out", str(out)]) == 0
         maps[encoding] = np.load(out)["prob"]
-    # Rounding moves a sample by micrometres (f32) or millimetres (q): a few samples change cell.
-    assert np.abs(maps["f32"] - maps["none"]).mean() < 1e-3
+    # Rounding moves a component by micrometres (f32) or millimetres (q); where that changes a
+    # component's sample count the seeded stream shifts, so cells differ by Monte-Carlo noise.
+    assert np.abs(maps["f32"] - maps["none"]).mean() < 0.01
     assert np.abs(maps["q"] - maps["none"]).mean() < 0.01
 
 
