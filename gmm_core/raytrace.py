@@ -95,8 +95,8 @@ def _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
 @njit(cache=True, parallel=True)
 def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):
     n_cells = dims[0] * dims[1] * dims[2]
-    hits = np.zeros((n_chunks, n_cells), dtype=np.float32)
-    misses = np.zeros((n_chunks, n_cells), dtype=np.float32)
+    hits = np.zeros((n_chunks, n_cells))
+    misses = np.zeros((n_chunks, n_cells))
     n_rays = ends.shape[0]
     for c in prange(n_chunks):
         first = n_rays * c // n_chunks
@@ -119,7 +119,8 @@ def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np
 
     Every cell a ray crosses inside the grid gains `weights[r]` misses, except the cell of its
     end point when `is_hit[r]` (that one gains a hit). Rays are clipped to the grid, so a ray
-    ending outside adds misses only. Returns float32 arrays of `grid.array_shape`.
+    ending outside adds misses only. Returns float64 arrays of `grid.array_shape`: sums in double
+    precision do not depend, to float32 precision, on how the rays were split among threads.
     """
     d = grid.dim
     z_mid = 0.5 * grid.resolution  # 2D: rays run along the mid-plane of a one-cell-thick grid

@@ -19,11 +19,15 @@ from gmm_core.scan import ScanModel
 RAYS_PER_BATCH = 2_000_000  # bounds memory: rays are traced in batches and their counts added
 
 
-def _accumulate(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
                 progress: Callable[[int], None] | None):
-    """Trace (origin, ends, weights, is_hit) groups in batches; counts add up across batches."""
-    hits = np.zeros(grid.array_shape, dtype=np.float32)
-    misses = np.zeros(grid.array_shape, dtype=np.float32)
+    """Trace groups of rays (world origin, world ends, weights, is_hit) in batches.
+
+    Counts add up across batches, so memory stays bounded however many scans there are. They are
+    summed in float64 and returned as float32, so the map does not depend on batching or threads.
+    """
+    hits = np.zeros(grid.array_shape)
+    misses = np.zeros(grid.array_shape)
     batch, n_rays = [], 0
 
     def flush():
@@ -45,7 +49,7 @@ def _accumulate(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndar
         if n_rays >= RAYS_PER_BATCH:
             flush()
     flush()
-    return hits, misses
+    return hits.astype(np.float32), misses.astype(np.float32)
 
 
 def _reaches(grid: Grid, origin: np.ndarray, ends: np.ndarray) -> bool:
@@ -74,7 +78,7 @@ def reconstruct(grid: Grid, scans: Iterable[tuple[ScanModel, Pose, int]], *,
             elif progress is not None:
                 progress(1)
 
-    return _accumulate(grid, rays(), progress)
+    return trace_groups(grid, rays(), progress)
 
 
 def count_beams(grid: Grid, beams: Iterable[tuple[np.ndarray, np.ndarray, Pose]], max_range: float,
@@ -90,4 +94,4 @@ def count_beams(grid: Grid, beams: Iterable[tuple[np.ndarray, np.ndarray, Pose]]
             is_hit = np.concatenate([np.ones(len(hits), bool), np.zeros(len(no_return), bool)])
             yield pose.t, pose.apply(ends), np.ones(len(ends)), is_hit
 
-    return _accumulate(grid, rays(), progress)
+    return trace_groups(grid, rays(), progress)

@@ -1,0 +1,1 @@
+"""The map server: durable store, in-memory fleet map, Zenoh ingest and HTTP."""

@@ -1,0 +1,245 @@
+"""The in-memory map of a fleet: every robot's scan models in their node frames, posed by a
+per-robot pose graph, and occupancy reconstructed on demand for any region and resolution.
+
+A pose-graph update changes node poses only: components and their cached samples stay in the
+node frame and are moved by the world pose when traced (Eq. 2), never refitted. Cached tiles
+are dropped only where a moved or new node can reach.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gmm_core import Grid, Pose, ScanModel
+from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
+from gmm_core.reconstruct import trace_groups
+from gmm_core.sampling import scan_rays, scan_seed
+from protocol import PoseGraphUpdate, ScanMessage
+
+SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
+TILE_CACHE_ENTRIES = 256
+
+
+def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
+    """Node-frame box every ray of the scan stays in: sensor origin plus 3-sigma of all components."""
+    lo, hi = model.origin.copy(), model.origin.copy()
+    for mixture in (model.occupied, model.free):
+        m_lo, m_hi = mixture.bounds(3.0)
+        lo, hi = np.minimum(lo, m_lo), np.maximum(hi, m_hi)
+    return lo, hi
+
+
+def world_box(pose: Pose, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box around a node-frame box moved by `pose`."""
+    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(len(lo), -1).T
+    moved = pose.apply(corners)
+    return moved.min(axis=0), moved.max(axis=0)
+
+
+@dataclass
+class Node:
+    model: ScanModel
+    estimate: Pose  # from the scan message, in the robot's map frame
+    seed: int
+    local_lo: np.ndarray
+    local_hi: np.ndarray
+    corrected: Pose | None = None  # from the newest pose-graph update
+
+
+@dataclass
+class Robot:
+    nodes: dict[int, Node] = field(default_factory=dict)
+    anchor: Pose | None = None  # robot map frame -> world
+    revision: int = -1
+    bytes_received: int = 0
+    last_seen: float = 0.0
+    components: int = 0
+
+    def world_pose(self, node: Node) -> Pose:
+        pose = node.corrected or node.estimate
+        return self.anchor.compose(pose) if self.anchor is not None else pose
+
+
+class FleetMap:
+    """Thread-safe: one lock guards the state and the ray tracer (numba kernels run one at a time)."""
+
+    def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR):
+        self.fleet = fleet
+        self.samples_per_cell = samples_per_cell
+        self.prior = prior
+        self.dim: int | None = None
+        self._robots: dict[str, Robot] = {}
+        self._lock = threading.RLock()
+        self._index: tuple[list[tuple[str, int]], np.ndarray, np.ndarray] | None = None
+        self._samples: OrderedDict = OrderedDict()
+        self._sample_rays = 0
+        self._tiles: OrderedDict = OrderedDict()
+        self._cache_hits = 0
+        self._cache_misses = 0
+
+    # -- ingest ---------------------------------------------------------------------------
+    def add_scan(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
+        """Hold a scan; False if (robot, node) is already held (a resend)."""
+        with self._lock:
+            if self.dim is None:
+                self.dim = msg.dim
+            elif msg.dim != self.dim:
+                raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
+            robot = self._robots.setdefault(msg.robot, Robot())
+            robot.last_seen = time.time()
+            robot.bytes_received += size_bytes
+            if msg.node in robot.nodes:
+                return False
+            lo, hi = local_reach(msg.model)
+            node = Node(msg.model, msg.pose, scan_seed(msg.robot, msg.node), lo, hi)
+            robot.nodes[msg.node] = node
+            robot.components += msg.model.n_components
+            self._changed([world_box(robot.world_pose(node), lo, hi)])
+            return True
+
+    def apply_poses(self, update: PoseGraphUpdate) -> bool:
+        """Re-pose nodes (Eq. 2 at query time); False if the revision is older than the held one.
+
+        An update with the held revision is applied too: a large revision may come in parts.
+        """
+        with self._lock:
+            if self.dim is not None and any(p.dim != self.dim for _, p in update.poses):
+                raise ValueError(f"poses: this map is {self.dim}D")
+            robot = self._robots.setdefault(update.robot, Robot())
+            robot.last_seen = time.time()
+            if update.revision < robot.revision:
+                return False
+            boxes = []
+            if update.anchor is not None:
+                # A new anchor moves every node of the robot.
+                boxes += [world_box(robot.world_pose(n), n.local_lo, n.local_hi) for n in robot.nodes.values()]
+                robot.anchor = update.anchor
+                boxes += [world_box(robot.world_pose(n), n.local_lo, n.local_hi) for n in robot.nodes.values()]
+            for node_id, pose in update.poses:
+                node = robot.nodes.get(node_id)
+                if node is None or (node.corrected is not None and np.array_equal(node.corrected.R, pose.R)
+                                    and np.array_equal(node.corrected.t, pose.t)):
+                    continue
+                boxes.append(world_box(robot.world_pose(node), node.local_lo, node.local_hi))
+                node.corrected = pose
+                boxes.append(world_box(robot.world_pose(node), node.local_lo, node.local_hi))
+            robot.revision = update.revision
+            # Poses for nodes not received yet are dropped: the agent resends its updates.
+            self._changed(boxes)
+            return True
+
+    def _changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Forget the node index and every cached tile that one of `boxes` reaches."""
+        if not boxes:
+            return
+        self._index = None
+        lo = np.array([b[0] for b in boxes])
+        hi = np.array([b[1] for b in boxes])
+        for key in [k for k, (g_lo, g_hi, _) in self._tiles.items()
+                    if np.any(np.all(lo <= g_hi, axis=1) & np.all(hi >= g_lo, axis=1))]:
+            del self._tiles[key]
+
+    # -- queries --------------------------------------------------------------------------
+    def _node_index(self):
+        """(keys, world lo, world hi) of every node, sorted by (robot, node)."""
+        if self._index is None:
+            keys, los, his = [], [], []
+            for name in sorted(self._robots):
+                robot = self._robots[name]
+                for node_id in sorted(robot.nodes):
+                    node = robot.nodes[node_id]
+                    lo, hi = world_box(robot.world_pose(node), node.local_lo, node.local_hi)
+                    keys.append((name, node_id))
+                    los.append(lo)
+                    his.append(hi)
+            d = self.dim or 2
+            self._index = (keys, np.array(los).reshape(-1, d), np.array(his).reshape(-1, d))
+        return self._index
+
+    def _node_rays(self, robot: str, node_id: int, node: Node, resolution: float):
+        """Node-frame samples for this resolution, drawn once and kept (deterministic by seed)."""
+        key = (robot, node_id, resolution)
+        rays = self._samples.get(key)
+        if rays is None:
+            rays = scan_rays(node.model, resolution, node.seed, self.samples_per_cell)
+            self._samples[key] = rays
+            self._sample_rays += len(rays[0])
+            while self._sample_rays > SAMPLE_CACHE_RAYS and len(self._samples) > 1:
+                _, old = self._samples.popitem(last=False)
+                self._sample_rays -= len(old[0])
+        else:
+            self._samples.move_to_end(key)
+        return rays
+
+    def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Hit and miss evidence on `grid` from the nodes that can reach it (all robots or `robots`)."""
+        with self._lock:
+            if self.dim is not None and grid.dim != self.dim:
+                raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
+            keys, lo, hi = self._node_index()
+            if not keys:
+                return np.zeros(grid.array_shape, np.float32), np.zeros(grid.array_shape, np.float32)
+            reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1)
+            wanted = None if robots is None else set(robots)
+
+            def groups():
+                for i in np.flatnonzero(reach):
+                    name, node_id = keys[i]
+                    if wanted is not None and name not in wanted:
+                        continue
+                    robot = self._robots[name]
+                    node = robot.nodes[node_id]
+                    ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
+                    if len(ends):
+                        pose = robot.world_pose(node)
+                        yield pose.apply(node.model.origin[None])[0], pose.apply(ends), weights, is_hit
+
+            return trace_groups(grid, groups(), None)
+
+    def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
+        """p(occupied) on `grid`, Eq. 11; cached until a node that reaches the grid changes."""
+        key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
+        with self._lock:
+            cached = self._tiles.get(key)
+            if cached is not None:
+                self._tiles.move_to_end(key)
+                self._cache_hits += 1
+                return cached[2]
+            self._cache_misses += 1
+            prob = map_estimate(*self.counts(grid, robots), self.prior)
+            prob.setflags(write=False)
+            self._tiles[key] = (grid.origin, grid.upper, prob)
+            while len(self._tiles) > TILE_CACHE_ENTRIES:
+                self._tiles.popitem(last=False)
+            return prob
+
+    def cache_stats(self) -> dict:
+        with self._lock:
+            return {"hits": self._cache_hits, "misses": self._cache_misses, "tiles": len(self._tiles),
+                    "sample_rays": self._sample_rays}
+
+    def robots(self) -> list[dict]:
+        with self._lock:
+            return [{"robot": name, "nodes": len(r.nodes), "components": r.components,
+                     "bytes_received": r.bytes_received, "last_seen": r.last_seen, "pose_revision": r.revision}
+                    for name, r in sorted(self._robots.items())]
+
+    def trajectory(self, robot: str) -> np.ndarray:
+        """World positions of the robot's sensor origins, in node order."""
+        with self._lock:
+            r = self._robots.get(robot)
+            if r is None or not r.nodes:
+                return np.zeros((0, self.dim or 2))
+            return np.array([r.world_pose(n).apply(n.model.origin[None])[0]
+                             for _, n in sorted(r.nodes.items())])
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """World box of every node's reach, or None for an empty map."""
+        with self._lock:
+            keys, lo, hi = self._node_index()
+            return (lo.min(axis=0), hi.max(axis=0)) if keys else None

@@ -1,0 +1,114 @@
+"""The fleet map: served maps equal offline reconstruction, re-posing, caches, the node index."""
+import numpy as np
+import pytest
+
+from gmm_core import Grid, Pose, fit_scan
+from gmm_core.occupancy import map_estimate
+from gmm_core.reconstruct import reconstruct
+from gmm_core.sampling import scan_seed
+from protocol import PoseGraphUpdate, ScanMessage
+from services.map_server.fleet_map import FleetMap
+
+GRID = Grid.from_bbox([-8.0, -12.0], [8.0, 4.0], 0.1)
+
+
+@pytest.fixture(scope="module")
+def fitted(intel_scans):
+    scans = intel_scans[:120]
+    return scans, [fit_scan(s.hits, s.no_return) for s in scans]
+
+
+def drifted(pose: Pose, i: int) -> Pose:
+    """An odometry-like estimate: the true pose with a drift that grows along the run."""
+    x, y, theta = pose.as_xytheta()
+    return Pose.from_xytheta(x + 0.004 * i, y - 0.003 * i, theta + 0.0005 * i)
+
+
+def offline(scans, models, robot, poses=None):
+    poses = poses or [s.pose for s in scans]
+    items = [(m, p, scan_seed(robot, s.index)) for m, p, s in zip(models, poses, scans)]
+    return map_estimate(*reconstruct(GRID, items, samples_per_cell=4.0))
+
+
+def test_served_map_equals_offline_reconstruction(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for s, m in zip(scans, models):
+        assert fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    assert np.array_equal(fleet.occupancy(GRID), offline(scans, models, "r1"))
+
+
+def test_pose_update_reposes_without_refitting(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for i, (s, m) in enumerate(zip(scans, models)):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i)))
+    before = fleet.occupancy(GRID)
+    assert np.array_equal(before, offline(scans, models, "r1", [drifted(s.pose, i) for i, s in enumerate(scans)]))
+    assert fleet.apply_poses(PoseGraphUpdate("f", "r1", 1, tuple((s.index, s.pose) for s in scans)))
+    after = fleet.occupancy(GRID)
+    assert np.array_equal(after, offline(scans, models, "r1"))
+    assert not np.array_equal(before, after)
+    assert not fleet.apply_poses(PoseGraphUpdate("f", "r1", 0, ((0, scans[0].pose),)))  # older: dropped
+    assert fleet.robots()[0]["pose_revision"] == 1
+
+
+def test_anchor_moves_the_whole_robot(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for s, m in zip(scans[:20], models[:20]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    start = fleet.trajectory("r1")
+    fleet.apply_poses(PoseGraphUpdate("f", "r1", 1, (), anchor=Pose.from_xytheta(2.0, -1.0, 0.0)))
+    assert np.allclose(fleet.trajectory("r1"), start + [2.0, -1.0])
+
+
+def test_duplicates_and_robot_filter(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for k, (s, m) in enumerate(zip(scans[:40], models[:40])):
+        fleet.add_scan(ScanMessage("f", "a" if k % 2 else "b", s.index, s.stamp, m, s.pose), size_bytes=100)
+    s, m = scans[1], models[1]
+    assert not fleet.add_scan(ScanMessage("f", "a", s.index, s.stamp, m, s.pose), size_bytes=100)
+    rows = {r["robot"]: r for r in fleet.robots()}
+    assert rows["a"]["nodes"] == 20 and rows["b"]["nodes"] == 20 and rows["a"]["bytes_received"] == 2100
+    only_a = fleet.occupancy(GRID, robots=["a"])
+    both = fleet.occupancy(GRID)
+    assert not np.array_equal(only_a, both)
+    assert np.all(fleet.occupancy(GRID, robots=["nobody"]) == 0.5)
+
+
+def test_tile_cache_hits_and_invalidation_only_where_nodes_moved(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for s, m in zip(scans[:30], models[:30]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    far = Grid.from_bbox([500.0, 500.0], [501.0, 501.0], 0.1)
+    first = fleet.occupancy(GRID)
+    fleet.occupancy(far)
+    assert fleet.occupancy(GRID) is first and fleet.cache_stats()["hits"] == 1
+    s = scans[0]
+    x, y, t = s.pose.as_xytheta()
+    fleet.apply_poses(PoseGraphUpdate("f", "r1", 1, ((s.index, Pose.from_xytheta(x + 0.5, y, t)),)))
+    assert fleet.occupancy(far) is not None and fleet.cache_stats()["hits"] == 2  # far tile kept
+    assert fleet.occupancy(GRID) is not first  # the moved node reaches GRID: recomputed
+
+
+def test_query_touches_only_nodes_that_reach_it(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for s, m in zip(scans, models):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    far = Grid.from_bbox([500.0, 500.0], [501.0, 501.0], 0.1)
+    assert np.all(fleet.occupancy(far) == 0.5)
+    assert fleet.cache_stats()["sample_rays"] == 0  # no node was sampled
+    lo, hi = fleet.extent()
+    assert np.all(lo < GRID.upper) and np.all(hi > GRID.origin)
+
+
+def test_dimension_mismatch_is_refused(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    fleet.add_scan(ScanMessage("f", "r1", 0, 0.0, models[0], scans[0].pose))
+    with pytest.raises(ValueError, match="bbox"):
+        fleet.occupancy(Grid.from_bbox([0, 0, 0], [1, 1, 1], 0.1))
