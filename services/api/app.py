@@ -1,0 +1,206 @@
+"""The HTTP API of a map server and its web viewer (OpenAPI at /docs).
+
+Endpoints that reconstruct occupancy or read the fleet map are plain `def` functions: FastAPI
+runs them in its threadpool, so CPU-bound reconstruction (and waiting for the map's lock) never
+blocks the event loop. Every bad parameter is answered with JSON and a 4xx code naming it.
+"""
+from __future__ import annotations
+
+import io
+import threading
+import time
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+from fastapi import FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import HTMLResponse, JSONResponse, Response
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from protocol import MapReply, encode
+from services.render import occupancy_png
+
+from . import params
+from .params import ApiError
+from .points import BLOCK, MAX_GRIDS, plan, point_probabilities
+
+VIEWER = Path(__file__).with_name("static") / "viewer.html"
+GRID_HEADERS = ["X-Grid-Origin", "X-Grid-Resolution", "X-Grid-Shape"]
+
+
+class Format(str, Enum):
+    npy = "npy"
+    png = "png"
+    msgpack = "msgpack"
+
+
+MEDIA_TYPES = {Format.npy: "application/x-npy", Format.png: "image/png", Format.msgpack: "application/msgpack"}
+
+
+class PointsBody(BaseModel):
+    points: list[list[float]]
+    resolution: float
+    robots: list[str] | None = None
+
+
+def error(status: int, field: str | None, message: str) -> JSONResponse:
+    return JSONResponse({"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status)
+
+
+def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
+    """The FastAPI app over one server's `state` (a ServerState: fleet, fleet_map, metrics).
+
+    CORS is off unless `cors_origins` is given.
+    """
+    app = FastAPI(title="gmmap map server", version="1", description=(
+        "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
+        "Grids follow DESIGN.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
+        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."))
+    if cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
+                           expose_headers=GRID_HEADERS)
+    fmap = state.fleet_map
+    viewer_html = VIEWER.read_text(encoding="utf-8")
+    synced = {"hits": 0, "misses": 0}
+    sync_lock = threading.Lock()
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError):
+        return error(exc.status, exc.field, exc.message)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError):
+        first = exc.errors()[0] if exc.errors() else {}
+        loc = [str(p) for p in first.get("loc", ()) if p not in ("query", "path", "body")]
+        return error(422, ".".join(loc) or None, first.get("msg", "invalid request"))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        return error(exc.status_code, None, str(exc.detail))
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception):
+        return error(500, None, f"internal error: {type(exc).__name__}")
+
+    def occupancy_of(grid, robots):
+        try:
+            return fmap.occupancy(grid, robots)
+        except ValueError as e:  # the map's own checks (a dimension that changed meanwhile)
+            raise ApiError("bbox", str(e)) from None
+
+    # -- occupancy ------------------------------------------------------------------------
+    @app.get("/v1/occupancy", summary="Occupancy probabilities of a box at a resolution",
+             responses={200: {"content": {m: {} for m in MEDIA_TYPES.values()},
+                              "description": "npy: float32 (ny, nx) or (nz, ny, nx); png: top-down grey image, "
+                                             "north up; msgpack: a protocol MapReply"}})
+    def occupancy(
+        bbox: str = Query(..., description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres"),
+        resolution: float = Query(..., description=f"cell size in metres, {params.MIN_RESOLUTION} to "
+                                                    f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells"),
+        format: Format = Query(Format.npy, description="npy, png or msgpack"),
+        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent"),
+    ) -> Response:
+        start = time.perf_counter()
+        res = params.resolution(resolution)
+        lo, hi = params.bbox(bbox)
+        params.check_dimension(len(lo), fmap.dim, "bbox")
+        grid = params.grid(lo, hi, res)
+        selected = params.robots(robots)
+        prob = occupancy_of(grid, selected)
+        if format is Format.npy:
+            buffer = io.BytesIO()
+            np.save(buffer, np.asarray(prob, dtype=np.float32))
+            body = buffer.getvalue()
+        elif format is Format.png:
+            body = occupancy_png(prob)
+        else:
+            body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
+        state.metrics.query_seconds.observe(time.perf_counter() - start)
+        headers = {"X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
+                   "X-Grid-Resolution": repr(grid.resolution),
+                   "X-Grid-Shape": ",".join(str(n) for n in grid.array_shape)}
+        return Response(body, media_type=MEDIA_TYPES[format], headers=headers)
+
+    def points_reply(pts: np.ndarray, res: float, selected, field: str) -> dict:
+        start = time.perf_counter()
+        grids = plan(pts, res)
+        if len(grids) > MAX_GRIDS:
+            raise ApiError(field, f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per "
+                                  f"request: scattered points cost one each, points on a common lattice of spacing "
+                                  f"`resolution` (such as cell centres) share one per {BLOCK}x{BLOCK} cells")
+        try:
+            prob = point_probabilities(fmap, pts, res, selected, grids)
+        except ValueError as e:
+            raise ApiError(field, str(e)) from None
+        state.metrics.query_seconds.observe(time.perf_counter() - start)
+        return {"resolution": res, "points": pts.tolist(), "probabilities": prob.tolist()}
+
+    @app.get("/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point")
+    def occupancy_points(
+        xy: str | None = Query(None, description="x1,y1,x2,y2,... (2D maps)"),
+        xyz: str | None = Query(None, description="x1,y1,z1,... (3D maps)"),
+        resolution: float = Query(..., description="cell size in metres"),
+        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent"),
+    ) -> dict:
+        if (xy is None) == (xyz is None):
+            raise ApiError("xy", "give exactly one of xy (2D) or xyz (3D)")
+        field, text, d = ("xy", xy, 2) if xy is not None else ("xyz", xyz, 3)
+        res = params.resolution(resolution)
+        if text.count(",") >= params.MAX_POINTS * d:  # before parsing
+            raise ApiError(field, f"at most {params.MAX_POINTS:,} points per request")
+        params.check_dimension(d, fmap.dim, field)
+        pts = params.points(params.numbers(text, field), d, field)
+        return points_reply(pts, res, params.robots(robots), field)
+
+    @app.post("/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)")
+    def occupancy_points_post(body: PointsBody) -> dict:
+        res = params.resolution(body.resolution)
+        d = len(body.points[0]) if body.points else 0
+        if d not in (2, 3) or any(len(p) != d for p in body.points):
+            raise ApiError("points", "must be a non-empty list of [x, y] or [x, y, z]")
+        params.check_dimension(d, fmap.dim, "points")
+        pts = params.points(body.points, d, "points")
+        return points_reply(pts, res, params.robots(body.robots), "points")
+
+    # -- robots and the map -----------------------------------------------------------------
+    @app.get("/v1/robots", summary="Every robot of the fleet")
+    def robots_list() -> list[dict]:
+        return fmap.robots()
+
+    @app.get("/v1/robots/{robot}/trajectory", summary="World positions of a robot's nodes, in node order")
+    def trajectory(robot: str) -> list[list[float]]:
+        name = params.robot(robot)
+        if not any(r["robot"] == name for r in fmap.robots()):
+            raise ApiError("robot", f"no robot {name!r} in fleet {state.fleet!r}", status=404)
+        return fmap.trajectory(name).tolist()
+
+    @app.get("/v1/map/extent", summary="World box reached by every node, or null for an empty map")
+    def extent() -> dict | None:
+        box = fmap.extent()
+        if box is None:
+            return None
+        return {"dim": len(box[0]), "lo": box[0].tolist(), "hi": box[1].tolist()}
+
+    # -- operations ---------------------------------------------------------------------------
+    @app.get("/healthz", summary="Liveness")
+    async def healthz() -> dict:
+        return {"status": "ok", "fleet": state.fleet}
+
+    @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
+    def metrics() -> Response:
+        stats = fmap.cache_stats()
+        with sync_lock:  # the map counts; the Prometheus counters follow by the difference
+            for key, counter in (("hits", state.metrics.cache_hits), ("misses", state.metrics.cache_misses)):
+                if stats[key] > synced[key]:
+                    counter.inc(stats[key] - synced[key])
+                    synced[key] = stats[key]
+        return Response(state.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def viewer() -> HTMLResponse:
+        return HTMLResponse(viewer_html)
+
+    return app

@@ -1,0 +1,106 @@
+"""Parsing and validation of HTTP query parameters, done before any work.
+
+Every rejection is an `ApiError` that names the parameter, turned into a JSON 4xx reply by the
+app. Limits are checked on the numbers alone, before a grid or array is built.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gmm_core import Grid
+from protocol import ProtocolError, check_id
+
+MIN_RESOLUTION = 0.005  # metres
+MAX_RESOLUTION = 10.0
+MAX_CELLS = 16_000_000  # per occupancy request
+MAX_POINTS = 10_000  # per point request
+MAX_COORDINATE = 1e9  # metres from the world origin, for points
+
+
+class ApiError(Exception):
+    """A bad request: `field` is the parameter at fault; `status` the HTTP code (4xx)."""
+
+    def __init__(self, field: str, message: str, status: int = 422):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+        self.status = status
+
+
+def numbers(text: str, field: str) -> np.ndarray:
+    """Comma-separated finite numbers."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = np.array([float(p) for p in parts], dtype=np.float64)
+    except ValueError:
+        raise ApiError(field, f"must be comma-separated numbers, got {text!r:.80}") from None
+    if not np.isfinite(values).all():
+        raise ApiError(field, "every number must be finite (no NaN or infinity)")
+    return values
+
+
+def resolution(value: float) -> float:
+    if not (math.isfinite(value) and MIN_RESOLUTION <= value <= MAX_RESOLUTION):
+        raise ApiError("resolution", f"must be between {MIN_RESOLUTION} and {MAX_RESOLUTION} m, got {value}")
+    return float(value)
+
+
+def bbox(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """`xmin,ymin,xmax,ymax` or `xmin,ymin,zmin,xmax,ymax,zmax` -> (lo, hi)."""
+    values = numbers(text, "bbox")
+    if len(values) not in (4, 6):
+        raise ApiError("bbox", f"must have 4 numbers (2D: xmin,ymin,xmax,ymax) or 6 (3D), got {len(values)}")
+    d = len(values) // 2
+    lo, hi = values[:d], values[d:]
+    if not (hi > lo).all():
+        raise ApiError("bbox", "every max must exceed its min (xmin < xmax, ymin < ymax[, zmin < zmax])")
+    return lo, hi
+
+
+def check_dimension(d: int, map_dim: int | None, field: str) -> None:
+    if map_dim is not None and d != map_dim:
+        raise ApiError(field, f"this map is {map_dim}D, the request is {d}D")
+
+
+def grid(lo: np.ndarray, hi: np.ndarray, res: float) -> Grid:
+    """The grid of DESIGN.md over [lo, hi]; 422 above MAX_CELLS, counted before anything is built."""
+    spans = [(h - l) / res for l, h in zip(lo.tolist(), hi.tolist())]  # Python floats: inf, no warning
+    cells = math.prod(max(math.ceil(n - 1e-9), 1) for n in spans) if all(map(math.isfinite, spans)) else math.inf
+    if cells > MAX_CELLS:
+        raise ApiError("bbox", f"{float(min(cells, 1e300)):.4g} cells requested; at most {MAX_CELLS:,} cells per request "
+                               "(use a coarser resolution or a smaller box)")
+    return Grid.from_bbox(lo, hi, res)
+
+
+def robots(selection: str | list[str] | None) -> tuple[str, ...] | None:
+    """None (every robot), or ids as a comma-separated string or a list; an empty one selects none."""
+    if selection is None:
+        return None
+    names = [n.strip() for n in selection.split(",") if n.strip()] if isinstance(selection, str) else selection
+    try:
+        return tuple(sorted({check_id(n, "robots") for n in names}))
+    except ProtocolError as e:
+        raise ApiError("robots", e.message) from None
+
+
+def robot(name: str) -> str:
+    try:
+        return check_id(name, "robot")
+    except ProtocolError as e:
+        raise ApiError("robot", e.message) from None
+
+
+def points(values, d: int, field: str) -> np.ndarray:
+    """(n, d) finite points from a flat sequence; at most MAX_POINTS."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    if len(values) == 0 or len(values) % d:
+        raise ApiError(field, f"must hold {d} numbers per point, got {len(values)} numbers")
+    if len(values) // d > MAX_POINTS:
+        raise ApiError(field, f"{len(values) // d} points requested; at most {MAX_POINTS:,} per request")
+    if not np.isfinite(values).all():
+        raise ApiError(field, "every number must be finite (no NaN or infinity)")
+    if np.abs(values).max() > MAX_COORDINATE:
+        raise ApiError(field, f"coordinates must lie within ±{MAX_COORDINATE:g} m")
+    return values.reshape(-1, d)

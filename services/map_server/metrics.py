@@ -1,0 +1,47 @@
+"""Prometheus metrics of one map server, in a registry of its own.
+
+A per-server CollectorRegistry (not the global default) keeps two servers in one test
+process from colliding on metric names.
+"""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+
+class ServerMetrics:
+    content_type = CONTENT_TYPE_LATEST
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.accepted = Counter(
+            "gmmap_messages_accepted", "Messages stored (or already held)", ["kind"], registry=r
+        )
+        self.rejected = Counter(
+            "gmmap_messages_rejected", "Messages rejected at the boundary", ["kind", "reason"],
+            registry=r,
+        )
+        self.bytes_received = Counter(
+            "gmmap_bytes_received", "Wire bytes of accepted messages", ["robot"], registry=r
+        )
+        self.query_seconds = Histogram(
+            "gmmap_query_seconds", "Occupancy query latency (HTTP and Zenoh)", registry=r,
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.15, 0.25, 0.5, 1, 2.5, 5),
+        )
+        self.cache_hits = Counter("gmmap_cache_hits", "Tile cache hits", registry=r)
+        self.cache_misses = Counter("gmmap_cache_misses", "Tile cache misses", registry=r)
+
+    def render(self) -> bytes:
+        """The registry in Prometheus text exposition format."""
+        return generate_latest(self.registry)
+
+    def rejected_total(self) -> float:
+        """Sum over all (kind, reason) labels — for tests and logs."""
+        return sum(
+            s.value
+            for m in self.rejected.collect()
+            for s in m.samples
+            if s.name.endswith("_total")
+        )

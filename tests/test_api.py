@@ -1,0 +1,309 @@
+"""The HTTP API and the web viewer, against a real uvicorn server on 127.0.0.1 and real Intel scans."""
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import socket
+import subprocess
+import threading
+import time
+import urllib.error
+import urllib.request
+from urllib.parse import quote
+
+import numpy as np
+import pytest
+import uvicorn
+from PIL import Image
+
+from gmm_core import Grid, fit_scan
+from protocol import MapReply, ScanMessage, decode
+from services.api import create_app
+from services.map_server.fleet_map import FleetMap
+from services.map_server.metrics import ServerMetrics
+from services.map_server.state import ServerState
+
+BBOX = "-10,-20,10,5"  # around the start of the Intel run
+
+
+class Server:
+    """A uvicorn server for `app` in a background thread, on a free port of 127.0.0.1."""
+
+    def __init__(self, app):
+        self.socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.socket.bind(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.socket.getsockname()[1]}"
+        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.socket]}, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            assert self.thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+            time.sleep(0.02)
+        return self
+
+    def __exit__(self, *exc):
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+        self.socket.close()
+
+
+def get(url: str):
+    """(status, headers, body) of a GET, 4xx and 5xx included."""
+    try:
+        with urllib.request.urlopen(url, timeout=60) as reply:
+            return reply.status, reply.headers, reply.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.headers, e.read()
+
+
+def post(url: str, payload) -> tuple[int, bytes]:
+    request = urllib.request.Request(url, json.dumps(payload).encode(), {"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=60) as reply:
+            return reply.status, reply.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+
+
+@pytest.fixture(scope="module")
+def fleet_map(intel_scans):
+    fleet = FleetMap("test")
+    for s in intel_scans[:400:4]:  # 100 scans spread over the first part of the run
+        msg = ScanMessage("test", "r1", node=s.index, stamp=s.stamp, model=fit_scan(s.hits, s.no_return), pose=s.pose)
+        assert fleet.add_scan(msg, size_bytes=1000)
+    return fleet
+
+
+@pytest.fixture(scope="module")
+def server(fleet_map):
+    state = ServerState(fleet="test", fleet_map=fleet_map, store=None, metrics=ServerMetrics())
+    with Server(create_app(state)) as running:
+        running.state = state
+        yield running
+
+
+@pytest.fixture(scope="module")
+def empty_server():
+    state = ServerState(fleet="empty", fleet_map=FleetMap("empty"), store=None, metrics=ServerMetrics())
+    with Server(create_app(state)) as running:
+        yield running
+
+
+def test_npy_round_trip(server, fleet_map):
+    status, headers, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format=npy")
+    assert status == 200
+    prob = np.load(io.BytesIO(body))
+    grid = Grid.from_bbox([-10, -20], [10, 5], 0.1)
+    assert prob.dtype == np.float32 and prob.shape == (250, 200) == grid.array_shape
+    assert headers["X-Grid-Shape"] == "250,200"
+    assert [float(v) for v in headers["X-Grid-Origin"].split(",")] == [-10.0, -20.0]
+    assert float(headers["X-Grid-Resolution"]) == 0.1
+    assert np.array_equal(prob, fleet_map.occupancy(grid))
+    assert (prob > 0.7).sum() > 200 and (prob < 0.3).sum() > 3000  # walls and free space
+    assert ((prob >= 0) & (prob <= 1)).all()
+
+
+def test_png_and_msgpack(server):
+    status, headers, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format=png")
+    assert status == 200 and headers["Content-Type"] == "image/png"
+    image = Image.open(io.BytesIO(body))
+    assert image.size == (200, 250) and image.mode == "L"
+    status, headers, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format=msgpack")
+    assert status == 200
+    reply = decode(body, expect=MapReply, max_bytes=len(body))
+    assert reply.fleet == "test" and reply.resolution == 0.1
+    assert np.array_equal(reply.origin, [-10, -20]) and reply.probabilities.shape == (250, 200)
+    _, _, npy = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1")  # npy is the default
+    assert np.array_equal(np.load(io.BytesIO(npy)), reply.probabilities)
+
+
+def test_same_query_same_bytes(server):
+    url = f"{server.url}/v1/occupancy?bbox=-3.3,-7.1,4.05,1.2&resolution=0.07&format=npy"
+    assert get(url)[2] == get(url)[2]
+
+
+@pytest.mark.parametrize("query, field, words", [
+    ("bbox=0,0,1,1&resolution=0.001", "resolution", "0.005"),
+    ("bbox=0,0,1,1&resolution=11", "resolution", "10"),
+    ("bbox=0,0,1,1&resolution=nan", "resolution", "between"),
+    ("bbox=0,0,1,1&resolution=abc", "resolution", ""),
+    ("bbox=-1000,-1000,1000,1000&resolution=0.05", "bbox", "16,000,000"),
+    ("bbox=-1e300,-1e300,1e300,1e300&resolution=0.05", "bbox", "16,000,000"),
+    ("bbox=-1.7e308,0,1.7e308,1&resolution=0.05", "bbox", "16,000,000"),
+    ("bbox=0,0,1&resolution=0.1", "bbox", "4 numbers"),
+    ("bbox=0,0,nan,1&resolution=0.1", "bbox", "finite"),
+    ("bbox=0,0,inf,1&resolution=0.1", "bbox", "finite"),
+    ("bbox=0,a,1,1&resolution=0.1", "bbox", "numbers"),
+    ("bbox=1,0,0,1&resolution=0.1", "bbox", "exceed"),
+    ("bbox=0,0,0,1,1,1&resolution=0.1", "bbox", "2D"),
+    ("bbox=0,0,1,1&resolution=0.1&format=tiff", "format", "npy"),
+    ("bbox=0,0,1,1&resolution=0.1&robots=bad%20name", "robots", "A-Za-z0-9"),
+    ("resolution=0.1", "bbox", ""),
+])
+def test_bad_requests_are_422_json(server, query, field, words):
+    start = time.perf_counter()
+    status, headers, body = get(f"{server.url}/v1/occupancy?{query}")
+    assert status == 422, body
+    assert headers["Content-Type"] == "application/json"
+    reply = json.loads(body)
+    assert reply["field"] == field and words in reply["detail"], reply
+    assert time.perf_counter() - start < 1.0  # rejected before any work
+
+
+def test_robot_selection(server, fleet_map):
+    url = f"{server.url}/v1/occupancy?bbox=-2,-2,2,2&resolution=0.1"
+    mine = np.load(io.BytesIO(get(url + "&robots=r1")[2]))
+    assert np.array_equal(mine, np.load(io.BytesIO(get(url)[2])))
+    for robots in ("nobody", "nobody,other", ""):
+        status, _, body = get(url + f"&robots={robots}")
+        assert status == 200 and (np.load(io.BytesIO(body)) == 0.5).all()
+
+
+def test_empty_map_is_unknown(empty_server):
+    for bbox in ("0,0,1,1", "0,0,0,1,1,1"):
+        status, headers, body = get(f"{empty_server.url}/v1/occupancy?bbox={bbox}&resolution=0.25")
+        assert status == 200 and (np.load(io.BytesIO(body)) == 0.5).all()
+    assert json.loads(get(f"{empty_server.url}/v1/map/extent")[2]) is None
+    assert json.loads(get(f"{empty_server.url}/v1/robots")[2]) == []
+
+
+def test_points(server, fleet_map):
+    grid = Grid.from_bbox([-4.0, -6.0], [-1.0, -4.0], 0.1)
+    centres = grid.cell_centers()
+    expected = fleet_map.occupancy(grid).ravel()
+    xy = ",".join(repr(float(v)) for v in centres[::7].ravel())
+    status, _, body = get(f"{server.url}/v1/occupancy/points?xy={xy}&resolution=0.1")
+    assert status == 200
+    reply = json.loads(body)
+    assert np.allclose(reply["probabilities"], expected[::7], atol=1e-6)
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": centres.tolist(), "resolution": 0.1})
+    assert status == 200 and np.allclose(json.loads(body)["probabilities"], expected, atol=1e-6)
+    # Scattered points: each its own cell, evaluated like a one-cell grid.
+    points = np.array([[0.013, -1.27], [-3.21, -5.55], [100.0, 100.0]])
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": points.tolist(), "resolution": 0.2})
+    one_cell = [fleet_map.occupancy(Grid(p - 0.1, 0.2, (1, 1)))[0, 0] for p in points]
+    assert status == 200 and np.allclose(json.loads(body)["probabilities"], one_cell, atol=1e-6)
+    assert json.loads(body)["probabilities"][2] == 0.5
+
+
+@pytest.mark.parametrize("query, field", [
+    ("xy=" + ",".join(["1"] * 20_002) + "&resolution=0.1", "xy"),
+    ("xy=1,2,3&resolution=0.1", "xy"),
+    ("xy=1,nan&resolution=0.1", "xy"),
+    ("xy=1e300,0&resolution=0.1", "xy"),
+    ("xyz=1,2,3&resolution=0.1", "xyz"),
+    ("resolution=0.1", "xy"),
+    ("xy=1,2&resolution=0", "resolution"),
+])
+def test_bad_points(server, query, field):
+    status, _, body = get(f"{server.url}/v1/occupancy/points?{query}")
+    assert status == 422 and json.loads(body)["field"] == field, body
+
+
+@pytest.mark.parametrize("payload, field", [
+    ({"points": [[0, 0]]}, "resolution"),
+    ({"points": [[0, "a"]], "resolution": 0.1}, "points.0.1"),
+    ({"points": [[0, 0, 0]], "resolution": 0.1}, "points"),
+    ({"points": [], "resolution": 0.1}, "points"),
+    ({"points": [[0, 0]], "resolution": 0.1, "robots": ["a,b"]}, "robots"),
+    ("not an object", None),
+])
+def test_bad_points_by_post(server, payload, field):
+    status, body = post(f"{server.url}/v1/occupancy/points", payload)
+    assert status == 422 and json.loads(body)["field"] == field, body
+
+
+def test_too_many_points_by_post(server):
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": [[0, 0]] * 10_001, "resolution": 0.1})
+    assert status == 422 and "10,000" in json.loads(body)["detail"]
+    scattered = np.random.default_rng(1).uniform(-10, 10, (1500, 2))  # each point its own cell lattice
+    start = time.perf_counter()
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": scattered.tolist(), "resolution": 0.1})
+    assert status == 422 and "at most 1,000" in json.loads(body)["detail"]
+    assert time.perf_counter() - start < 1.0
+    lattice = (np.round(np.random.default_rng(2).uniform(-10, 10, (10_000, 2)) / 0.1) + 0.5) * 0.1
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": lattice.tolist(), "resolution": 0.1})
+    assert status == 200 and len(json.loads(body)["probabilities"]) == 10_000
+
+
+def test_robots_trajectory_extent(server, fleet_map, intel_scans):
+    robots = json.loads(get(f"{server.url}/v1/robots")[2])
+    assert len(robots) == 1 and robots[0]["robot"] == "r1" and robots[0]["nodes"] == 100
+    assert robots[0]["bytes_received"] == 100_000 and robots[0]["components"] > 100
+    assert {"last_seen", "pose_revision"} <= robots[0].keys()
+    path = json.loads(get(f"{server.url}/v1/robots/r1/trajectory")[2])
+    assert len(path) == 100 and np.allclose(path, fleet_map.trajectory("r1"))
+    assert np.allclose(path[0], intel_scans[0].pose.t, atol=0.5)  # the sensor sits on the robot
+    assert get(f"{server.url}/v1/robots/nobody/trajectory")[0] == 404
+    assert get(f"{server.url}/v1/robots/{quote('bad name')}/trajectory")[0] == 422
+    extent = json.loads(get(f"{server.url}/v1/map/extent")[2])
+    lo, hi = fleet_map.extent()
+    assert extent == {"dim": 2, "lo": lo.tolist(), "hi": hi.tolist()}
+
+
+def test_health_metrics_docs(server):
+    status, _, body = get(f"{server.url}/healthz")
+    assert status == 200 and json.loads(body)["status"] == "ok"
+    get(f"{server.url}/v1/occupancy?bbox=0,0,1,1&resolution=0.5")
+    get(f"{server.url}/v1/occupancy?bbox=0,0,1,1&resolution=0.5")
+    status, headers, body = get(f"{server.url}/metrics")
+    assert status == 200 and headers["Content-Type"].startswith("text/plain; version=0.0.4")
+    text = body.decode()
+    for name in ("gmmap_query_seconds_bucket", "gmmap_query_seconds_count", "gmmap_cache_hits_total",
+                 "gmmap_cache_misses_total", "gmmap_messages_accepted", "gmmap_bytes_received"):
+        assert name in text, name
+    hits = float(next(line.split()[1] for line in text.splitlines() if line.startswith("gmmap_cache_hits_total")))
+    assert hits >= 1
+    assert get(f"{server.url}/docs")[0] == 200
+    spec = json.loads(get(f"{server.url}/openapi.json")[2])
+    assert "/v1/occupancy" in spec["paths"] and "/v1/robots" in spec["paths"]
+    assert get(f"{server.url}/nowhere")[0] == 404
+
+
+def test_queries_do_not_block_the_event_loop(server):
+    """A cold 9 M cell reconstruction (about a second) runs in the threadpool: /healthz answers meanwhile."""
+    slow = threading.Thread(target=get, args=(f"{server.url}/v1/occupancy?bbox=-30,-30,30,30&resolution=0.02",))
+    slow.start()
+    time.sleep(0.1)
+    start = time.perf_counter()
+    assert get(f"{server.url}/healthz")[0] == 200
+    waited = time.perf_counter() - start
+    still_running = slow.is_alive()
+    slow.join()
+    assert still_running and waited < 0.3, (still_running, waited)
+
+
+# -- the web viewer in headless Chromium ------------------------------------------------------
+
+def test_viewer_is_served(server):
+    status, headers, body = get(f"{server.url}/")
+    assert status == 200 and headers["Content-Type"].startswith("text/html")
+    assert b"<canvas" in body and b"v1/occupancy" in body and b"http" not in body.split(b"<script>")[1]
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None,
+                    reason="Debian chromium is not on PATH (make test installs it when run as root)")
+def test_viewer_draws_the_map(server, tmp_path):
+    shot = tmp_path / "viewer.png"
+    command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600",
+               "--hide-scrollbars", "--virtual-time-budget=8000", f"--screenshot={shot}", f"{server.url}/"]
+    subprocess.run(command, capture_output=True, timeout=120, check=False)
+    assert shot.exists(), "chromium wrote no screenshot"
+    image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    assert image.shape[:2] == (600, 800)
+    grey = image.mean(axis=2)
+    centre = grey[100:500, 150:650]  # away from the panels at the corners
+    free = (centre > 235).mean()
+    occupied = (centre < 70).mean()
+    assert free > 0.05, f"only {free:.1%} free (near-white) map pixels: the map is not drawn"
+    assert occupied > 0.003, f"only {occupied:.2%} occupied (dark) map pixels"
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    trajectory = (r > 180) & (g < 80) & (b < 120)  # the first robot's colour, #e6194b
+    assert trajectory.sum() > 100, "the robot's trajectory is not drawn"
