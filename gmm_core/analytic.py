@@ -11,16 +11,18 @@ inside it (hits). This module computes the expected counts for any cell directly
   sensor. In the isotropic frame x_I = S^-1/2 V^T (x - mu) the component is N(0, I) and rays
   stay rays (the map is affine), so the question is the standard normal mass of a region.
   2D: Eq. 5 where it is exact to 1e-10 (the cell lies well in front of the component and the
-  sensor well outside it), elsewhere the exact mass of the cell's wedge minus the convex hull
-  of sensor and cell, by Brianchon-Gram (one bivariate normal orthant per hull corner).
-  3D (Eq. 6-9): the shadow of each exit face of the voxel, cast from the sensor onto the plane
-  through the mean across the beam, integrated by Green's theorem with the erf approximation
-  of Eq. 7, times the radial tail of Eq. 4 beyond that face.
+  sensor well outside it); elsewhere exactly, as the mass of the cell's wedge minus that of the
+  convex hull of sensor and cell, by Brianchon-Gram (one bivariate normal orthant per corner).
+  3D: well in front of the component the paper's Eq. 6-9 (the cube's shadow cast from the
+  sensor onto the plane through the mean across the beam, integrated by Green's theorem with
+  the erf approximation of Eq. 7; error up to 0.012 of the component's mass); near it exactly,
+  as the mass of C(V) = the cone from the sensor over the cube beyond the cube's entry (a convex
+  polyhedron) minus the cube's own, by the same slices as the hits.
 
 What counts follows gmm_core.raytrace: a sample whose ray crosses the cell and ends outside it
 is a miss of the cell; a sample inside the cell is a hit when it comes from the occupied mixture
-and a miss when it comes from the free (max-range) mixture. A cell holding the sensor is crossed
-by every ray.
+and a miss when it comes from the free (max-range) mixture. The cell holding the sensor (by the
+tracer's floor convention: -h <= s - c < h per axis) is crossed by every ray.
 
 Conventions: a cell is given by its centre and side (square in 2D, cube in 3D, axis-aligned);
 masses are fractions of one component (multiply by N pi_k for counts).
@@ -28,6 +30,7 @@ masses are fractions of one component (multiply by N pi_k for counts).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -35,8 +38,6 @@ from numba import njit, prange
 
 from gmm_core.grid import Grid
 from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
-from gmm_core.pose import Pose
-from gmm_core.scan import ScanModel
 
 SQRT2 = math.sqrt(2.0)
 SQRT_2PI = math.sqrt(2.0 * math.pi)
@@ -181,8 +182,25 @@ def _corner_mass(vx, vy, nx_, ny_, px, py):
 
 
 @njit(cache=True)
+def _drop_repeated_corners(xs, ys, n):
+    """Merge corners closer than 1e-9 of the polygon's size (clipping by coinciding planes leaves
+    such pairs; the edge between them has a direction of pure round-off). Returns the new count."""
+    size = max(xs[:n].max() - xs[:n].min(), ys[:n].max() - ys[:n].min())
+    m = 0
+    for i in range(n):
+        if m == 0 or math.hypot(xs[i] - xs[m - 1], ys[i] - ys[m - 1]) > 1e-9 * size:
+            xs[m], ys[m] = xs[i], ys[i]
+            m += 1
+    while m > 1 and math.hypot(xs[m - 1] - xs[0], ys[m - 1] - ys[0]) <= 1e-9 * size:
+        m -= 1
+    return m
+
+
+@njit(cache=True)
 def _polygon_mass_exact(xs, ys, n):
     """Standard normal mass of a convex ccw polygon (Brianchon-Gram: corners - edges + plane)."""
+    if n >= 3:
+        n = _drop_repeated_corners(xs, ys, n)
     if n < 3:
         return 0.0
     total = 1.0
@@ -209,7 +227,8 @@ def _edge_piece_eq8(x0, y0, x1, y1, s):
     g0 = -x0 - m * (2.0 * y0 + s * SQRT_2PI) / math.pi  # its slope at x0
     ra = math.sqrt(a)
     shift = 0.5 * g0 / a
-    gauss = 0.5 * math.sqrt(math.pi / a) * math.exp(f0 + 0.25 * g0 * g0 / a) * _erf_diff(-ra * shift, ra * (dx - shift))
+    peak = 0.5 * math.sqrt(math.pi / a) * math.exp(f0 + 0.25 * g0 * g0 / a)
+    gauss = peak * _erf_diff(-ra * shift, ra * (dx - shift))
     return s * (SQRT_HALF_PI * _erf_diff(x0 / SQRT2, x1 / SQRT2) - gauss)
 
 
@@ -253,6 +272,18 @@ def _make_ccw(xs, ys, n):
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True)
+def _holds_sensor(sensor, center, half):
+    """Whether the cell holds the sensor: -half <= s - c < half on every axis, the ray tracer's
+    floor convention (a sensor on a shared boundary belongs to the upper cell), with round-off
+    to spare so that neighbouring cells agree."""
+    for i in range(sensor.shape[0]):
+        offset = sensor[i] - center[i]
+        if offset < -half * (1.0 + 1e-9) or offset >= half * (1.0 - 1e-9):
+            return False
+    return True
+
+
+@njit(cache=True)
 def _eq5(p, sin1, sin2, r_prime):
     """Eq. 5: 1/4 erfc((r' - p)/sqrt2) (erf(p sin(theta2)/sqrt2) - erf(p sin(theta1)/sqrt2)).
 
@@ -279,20 +310,29 @@ def _rect_mass_2d(mean, cov, cx, cy, half):
 
 
 @njit(cache=True)
-def _beyond_exact_2d(qx, qy, px, py, mass):
-    """Mass of the cell's wedge from the sensor q beyond the cell (the ccw polygon px, py).
+def _beyond_exact_2d(qx, qy, px, py, radius):
+    """Eq. 3 exactly: mass of the cell's wedge from the sensor q beyond the cell (ccw polygon px, py).
 
     wedge - hull(q, cell) = sum(edge half-planes) - sum(corner wedges) - 1 over the hull's edges
-    and its corners other than q (Brianchon-Gram for the hull; q's own wedge cancels).
+    and its corners other than q (Brianchon-Gram for the hull; q's own wedge cancels). The cell
+    does not hold q, but q may lie on its boundary.
     """
+    for i in range(4):  # on a corner up to round-off: exactly there, so no edge has a noise direction
+        if math.hypot(px[i] - qx, py[i] - qy) < 1e-9 * radius:
+            qx, qy = px[i], py[i]
     back = np.empty(4, dtype=np.bool_)  # edges that face away from q (q on their inner side)
     n_back = 0
+    nearest, nearest_dist = 0, np.inf
     for i in range(4):
         j = (i + 1) % 4
-        back[i] = (px[j] - px[i]) * (qy - py[i]) - (py[j] - py[i]) * (qx - px[i]) >= 0.0
+        ex, ey = px[j] - px[i], py[j] - py[i]
+        cross = ex * (qy - py[i]) - ey * (qx - px[i])
+        back[i] = cross >= 0.0
         n_back += back[i]
-    if n_back == 4:  # q inside the cell after round-off: every ray leaves through it
-        return 1.0 - mass
+        if cross / math.hypot(ex, ey) < nearest_dist:
+            nearest, nearest_dist = i, cross / math.hypot(ex, ey)
+    if n_back == 4:  # q on the boundary (round-off put it inside): the edge through it faces q
+        back[nearest] = False
     start = 0
     while not (back[start] and not back[(start + 3) % 4]):
         start += 1
@@ -313,7 +353,7 @@ def _beyond_exact_2d(qx, qy, px, py, mass):
 
 
 @njit(cache=True)
-def _beyond_2d(qx, qy, px, py, ccx, ccy, radius, mass):
+def _beyond_2d(qx, qy, px, py, ccx, ccy, radius):
     """Mass beyond the cell on rays from q (isotropic frame, component N(0, I)); Eq. 5 where exact."""
     p = math.hypot(qx, qy)
     if p >= NEGLIGIBLE_SIGMA + 1.0:
@@ -324,6 +364,8 @@ def _beyond_2d(qx, qy, px, py, ccx, ccy, radius, mass):
         for i in range(4):
             wx, wy = px[i] - qx, py[i] - qy
             r = math.hypot(wx, wy)
+            if r < 1e-9 * radius:  # the sensor on a corner: its angle is round-off
+                return _beyond_exact_2d(qx, qy, px, py, radius)
             if wx * bx + wy * by > 0.0:
                 all_back = False
             else:
@@ -339,7 +381,7 @@ def _beyond_2d(qx, qy, px, py, ccx, ccy, radius, mass):
                 return 0.0  # the cell lies behind the component
             if r_far < p - NEGLIGIBLE_SIGMA:
                 return _eq5(p, sin1, sin2, r_far)  # exact to 1e-10: nothing between q and the cell
-    return _beyond_exact_2d(qx, qy, px, py, mass)
+    return _beyond_exact_2d(qx, qy, px, py, radius)
 
 
 @njit(cache=True)
@@ -359,12 +401,12 @@ def _cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
     mass = 0.0
     if math.hypot(ccx, ccy) - radius < NEGLIGIBLE_SIGMA + 1.0:
         mass = _rect_mass_2d(mean, cov, cx, cy, half)
-    if abs(sensor[0] - cx) <= half and abs(sensor[1] - cy) <= half:
+    if _holds_sensor(sensor, (cx, cy), half):
         beyond = 1.0 - mass
     else:
         qx = iso[0, 0] * (sensor[0] - mean[0]) + iso[0, 1] * (sensor[1] - mean[1])
         qy = iso[1, 0] * (sensor[0] - mean[0]) + iso[1, 1] * (sensor[1] - mean[1])
-        beyond = _beyond_2d(qx, qy, px, py, ccx, ccy, radius, mass)
+        beyond = _beyond_2d(qx, qy, px, py, ccx, ccy, radius)
     if max_range:
         return 0.0, beyond + mass
     return mass, beyond
@@ -375,6 +417,23 @@ def _cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
 # ---------------------------------------------------------------------------------------------
 
 SLICE_HALF_WIDTH = 9.0  # slices are clipped to |u|, |v| <= 9 (isotropic): the mass outside is < 1e-18
+
+
+@njit(cache=True)
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True)
+def _sort_small(values, n):
+    """Insertion sort of values[:n] in place (n <= 11; numba's sort costs seconds to compile)."""
+    for i in range(1, n):
+        v = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > v:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = v
 
 
 @njit(cache=True)
@@ -393,25 +452,22 @@ def _cube_halfspaces(corners, sensor, normals, offsets):
     """Rows normals[i] . x >= offsets[i]: rows 0-5 the cube; from row 6 on, the region beyond the
     cube's entry seen from the sensor, C(V) = (cone from the sensor over the cube) cut by the far
     sides of the faces the sensor sees. Returns the number of rows of C(V)."""
-    lo, hi = corners[0], corners[7]
     front = np.zeros((3, 2), dtype=np.bool_)
     for a in range(3):
-        normals[2 * a] = 0.0
-        normals[2 * a, a] = 1.0
-        offsets[2 * a] = lo[a]
-        normals[2 * a + 1] = 0.0
-        normals[2 * a + 1, a] = -1.0
-        offsets[2 * a + 1] = -hi[a]
-        front[a, 0] = sensor[a] < lo[a]
-        front[a, 1] = sensor[a] > hi[a]
+        for side in range(2):
+            row = 2 * a + side
+            normals[row, :] = 0.0
+            normals[row, a] = -1.0 if side else 1.0
+            offsets[row] = -corners[7, a] if side else corners[0, a]
+        front[a, 0] = sensor[a] <= corners[0, a]  # a sensor on the face's plane sees it too
+        front[a, 1] = sensor[a] >= corners[7, a]
     n = 6
     for a in range(3):
         for side in range(2):
             if front[a, side]:  # the far side of a visible face is the cube's own half-space
-                normals[n] = normals[2 * a + side]
+                normals[n, :] = normals[2 * a + side]
                 offsets[n] = offsets[2 * a + side]
                 n += 1
-    centre = 0.5 * (lo + hi)
     for a in range(3):  # silhouette edges (one adjacent face seen, the other not): cone facets
         u, v = (a + 1) % 3, (a + 2) % 3
         for bu in range(2):
@@ -419,14 +475,19 @@ def _cube_halfspaces(corners, sensor, normals, offsets):
                 if front[u, bu] == front[v, bv]:
                     continue
                 k = (bu << u) | (bv << v)
-                g = np.cross(corners[k] - sensor, corners[k | (1 << a)] - sensor)
-                norm = math.sqrt(g @ g)
-                if norm == 0.0:
-                    continue  # the edge points at the sensor: its neighbours bound the cone
-                if g @ (centre - sensor) < 0.0:
-                    g = -g
-                normals[n] = g / norm
-                offsets[n] = normals[n] @ sensor
+                e0, e1 = corners[k], corners[k | (1 << a)]
+                g0 = (e0[1] - sensor[1]) * (e1[2] - sensor[2]) - (e0[2] - sensor[2]) * (e1[1] - sensor[1])
+                g1 = (e0[2] - sensor[2]) * (e1[0] - sensor[0]) - (e0[0] - sensor[0]) * (e1[2] - sensor[2])
+                g2 = (e0[0] - sensor[0]) * (e1[1] - sensor[1]) - (e0[1] - sensor[1]) * (e1[0] - sensor[0])
+                norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+                if norm < 1e-9 * (corners[7, 0] - corners[0, 0]) ** 2:
+                    continue  # the edge's line runs through the sensor: its neighbours bound the cone
+                inward = (g0 * (0.5 * (corners[0, 0] + corners[7, 0]) - sensor[0])  # towards the centre
+                          + g1 * (0.5 * (corners[0, 1] + corners[7, 1]) - sensor[1])
+                          + g2 * (0.5 * (corners[0, 2] + corners[7, 2]) - sensor[2]))
+                scale = (1.0 if inward >= 0.0 else -1.0) / norm
+                normals[n, 0], normals[n, 1], normals[n, 2] = g0 * scale, g1 * scale, g2 * scale
+                offsets[n] = _dot3(normals[n], sensor)
                 n += 1
     return n - 6
 
@@ -454,60 +515,62 @@ def _clipped_slice_mass(alpha, beta, gamma, first, count, xa, ya, xb, yb):
         if m < 3:
             return 0.0
         n = m
-        xa[:n], ya[:n] = xb[:n], yb[:n]
+        for j in range(n):
+            xa[j], ya[j] = xb[j], yb[j]
     return _polygon_mass_exact(xa, ya, n)
 
 
 @njit(cache=True)
 def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
-    """(mass of the cube, mass of C(V)) for N(mean, Sigma), by slices across the thinnest axis.
+    """(mass of the cube (Eq. 10), mass of C(V) (Eq. 3 plus the cube)), by slices across the thinnest axis.
 
     In the eigenbasis the offset z along the thinnest eigenvector is independent of the in-plane
     coordinates, so each mass is the integral over z of the exact mass of a convex slice (Eq. 10
     for the cube). The slices change shape only at the corners' offsets: Gauss-Legendre runs
-    between them, in t = Phi(z / sigma) so the Gaussian weight is absorbed.
+    between them, in t = Phi(z / sigma) so that the Gaussian weight is absorbed.
     """
     normals = np.empty((16, 3))
     offsets = np.empty(16)
-    n_cone = _cube_halfspaces(corners, sensor, normals, offsets) if with_cone else 0
+    n_cone = _cube_halfspaces(corners, sensor, normals, offsets)  # fills the cube's rows too
+    if not with_cone:
+        n_cone = 0
     rows = 6 + n_cone
     sn = math.sqrt(evals[0])
-    axes = np.ascontiguousarray(evecs.T)  # rows: the eigenvectors, thinnest first
-    normal, e1, e2 = axes[0], axes[1], axes[2]
-    alpha = np.empty(rows)
-    beta = np.empty(rows)
-    gamma0 = np.empty(rows)
-    gamma1 = np.empty(rows)
-    for i in range(rows):  # row in slice coordinates: alpha u + beta v >= gamma0 - z gamma1
-        alpha[i] = math.sqrt(evals[1]) * (normals[i] @ e1)
-        beta[i] = math.sqrt(evals[2]) * (normals[i] @ e2)
-        gamma0[i] = offsets[i] - normals[i] @ mean
-        gamma1[i] = normals[i] @ normal
+    alpha, beta = np.empty(rows), np.empty(rows)
+    gamma0, gamma1, gamma = np.empty(rows), np.empty(rows), np.empty(rows)
+    for i in range(rows):  # a row in slice coordinates: alpha u + beta v >= gamma0 - z gamma1
+        alpha[i], beta[i], gamma0[i], gamma1[i] = 0.0, 0.0, offsets[i], 0.0
+        for j in range(3):
+            alpha[i] += math.sqrt(evals[1]) * normals[i, j] * evecs[j, 1]
+            beta[i] += math.sqrt(evals[2]) * normals[i, j] * evecs[j, 2]
+            gamma0[i] -= normals[i, j] * mean[j]
+            gamma1[i] += normals[i, j] * evecs[j, 0]
     breaks = np.empty(11)
     for k in range(8):
-        breaks[k + 1] = normal @ (corners[k] - mean)
-    z_lo, z_hi = breaks[1:9].min(), breaks[1:9].max()
-    breaks[9] = 0.0
-    breaks[0], breaks[10] = (-np.inf, np.inf) if with_cone else (z_lo, z_hi)
-    breaks.sort()
-    gamma = np.empty(rows)
+        breaks[k] = 0.0
+        for j in range(3):
+            breaks[k] += evecs[j, 0] * (corners[k, j] - mean[j])
+    z_lo, z_hi = breaks[:8].min(), breaks[:8].max()
+    breaks[8] = 0.0
+    breaks[9], breaks[10] = (-np.inf, np.inf) if with_cone else (z_lo, z_hi)
+    _sort_small(breaks, 11)
     xa, ya, xb, yb = np.empty(32), np.empty(32), np.empty(32), np.empty(32)
     cube_mass, cone_mass = 0.0, 0.0
     for i in range(10):
         za, zb = breaks[i], breaks[i + 1]
         if not zb > za:
             continue
-        sign = 1.0 if za + zb > 0.0 or zb == np.inf else -1.0
+        sign = 1.0 if za + zb > 0.0 or zb == np.inf else -1.0  # upper half: t = Q(z/sn); lower: Phi
         ta, tb = _norm_sf(sign * za / sn), _norm_sf(sign * zb / sn)
         width = abs(tb - ta)
         if width < 1e-16:
             continue
         in_cube = za >= z_lo and zb <= z_hi
         for g in range(_SLICE_X.shape[0]):
-            t = min(ta, tb) + 0.5 * width * (_SLICE_X[g] + 1.0)
-            z = -sign * sn * _norm_ppf_lower(t)
+            z = -sign * sn * _norm_ppf_lower(min(ta, tb) + 0.5 * width * (_SLICE_X[g] + 1.0))
             weight = 0.5 * width * _SLICE_W[g]
-            gamma[:] = gamma0 - z * gamma1
+            for r in range(rows):
+                gamma[r] = gamma0[r] - z * gamma1[r]
             if in_cube:
                 cube_mass += weight * _clipped_slice_mass(alpha, beta, gamma, 0, 6, xa, ya, xb, yb)
             if with_cone:
@@ -516,10 +579,15 @@ def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
 
 
 @njit(cache=True)
-def _convex_hull(xs, ys, n):
-    """Indices of the convex hull of n points, counter-clockwise (Andrew's monotone chain)."""
-    order = np.argsort(xs[:n] + 1e-12 * ys[:n])
-    hull = np.empty(2 * n, dtype=np.int64)
+def _convex_hull(xs, ys, n, hull):
+    """The convex hull of n points, counter-clockwise, into hull; returns its size (monotone chain)."""
+    order = np.arange(n)
+    for i in range(1, n):  # insertion sort by (x, y)
+        j = i
+        while j > 0 and (xs[order[j - 1]] > xs[order[j]]
+                         or (xs[order[j - 1]] == xs[order[j]] and ys[order[j - 1]] > ys[order[j]])):
+            order[j - 1], order[j] = order[j], order[j - 1]
+            j -= 1
     m = 0
     for rep in range(2):
         start = m
@@ -533,7 +601,7 @@ def _convex_hull(xs, ys, n):
             hull[m] = i
             m += 1
         m -= 1  # the last point of each chain starts the other
-    return hull[:m]
+    return m
 
 
 @njit(cache=True)
@@ -541,40 +609,52 @@ def _shadow_mass_eq9(ws, b, p):
     """Eq. 6-9: mass of the cube's shadow, cast from the sensor onto the plane through the mean
     across the beam (isotropic frame; ws: corners relative to the sensor, all in front of it)."""
     t1 = np.array([-b[1], b[0], 0.0]) if abs(b[2]) < 0.9 else np.array([0.0, -b[2], b[1]])
-    t1 /= math.sqrt(t1 @ t1)
-    t2 = np.cross(b, t1)
+    t1 /= math.sqrt(_dot3(t1, t1))
+    t2 = np.array([b[1] * t1[2] - b[2] * t1[1], b[2] * t1[0] - b[0] * t1[2], b[0] * t1[1] - b[1] * t1[0]])
     xs, ys = np.empty(8), np.empty(8)
     for k in range(8):
-        scale = p / (ws[k] @ b)
-        xs[k] = (ws[k] @ t1) * scale
-        ys[k] = (ws[k] @ t2) * scale
-    hull = _convex_hull(xs, ys, 8)
-    return _polygon_mass_eq9(xs[hull], ys[hull], hull.shape[0])
+        scale = p / _dot3(ws[k], b)
+        xs[k] = _dot3(ws[k], t1) * scale
+        ys[k] = _dot3(ws[k], t2) * scale
+    hull = np.empty(16, dtype=np.int64)
+    m = _convex_hull(xs, ys, 8, hull)
+    hx, hy = np.empty(m), np.empty(m)
+    for i in range(m):
+        hx[i], hy[i] = xs[hull[i]], ys[hull[i]]
+    return _polygon_mass_eq9(hx, hy, m)
 
 
 @njit(cache=True)
 def _cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, half):
     """(hits, misses) of one component in one cube, as fractions of its mass."""
     corners = _cube_corners(cx, cy, cz, half)
-    if abs(sensor[0] - cx) <= half and abs(sensor[1] - cy) <= half and abs(sensor[2] - cz) <= half:
+    if _holds_sensor(sensor, (cx, cy, cz), half):
         mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, False)[0]
         return (0.0, 1.0) if max_range else (mass, 1.0 - mass)
-    q = iso @ (sensor - mean)
-    p = math.sqrt(q @ q)
-    ws = (corners - mean) @ iso.T - q  # corners relative to the sensor, isotropic frame
-    centre = iso @ (np.array([cx, cy, cz]) - mean) - q
-    dist = math.sqrt(centre @ centre)
+    # Isotropic frame, sensor at the origin: q is the sensor seen from the mean, ws the corners.
+    q = np.zeros(3)
+    centre = np.zeros(3)
+    ws = np.zeros((8, 3))
+    for i in range(3):
+        for j in range(3):
+            q[i] += iso[i, j] * (sensor[j] - mean[j])
+            centre[i] += iso[i, j] * ((cx, cy, cz)[j] - sensor[j])
+            for k in range(8):
+                ws[k, i] += iso[i, j] * (corners[k, j] - sensor[j])
+    p = math.sqrt(_dot3(q, q))
+    dist = math.sqrt(_dot3(centre, centre))
     radius, r_far, all_front = 0.0, 0.0, p > 0.0
     for k in range(8):
-        radius = max(radius, math.sqrt((ws[k] - centre) @ (ws[k] - centre)))
-        r_far = max(r_far, math.sqrt(ws[k] @ ws[k]))
-        all_front = all_front and ws[k] @ q < 0.0
+        offset = ws[k] - centre
+        radius = max(radius, math.sqrt(_dot3(offset, offset)))
+        r_far = max(r_far, math.sqrt(_dot3(ws[k], ws[k])))
+        all_front = all_front and _dot3(ws[k], q) < 0.0
     if dist - radius > p + NEGLIGIBLE_SIGMA:
         return 0.0, 0.0  # behind the component
     if p > NEGLIGIBLE_SIGMA + 1.0:
         b = -q / p
-        off_axis = math.acos(min(1.0, max(-1.0, (centre @ b) / dist))) if dist > radius else 0.0
-        if off_axis > math.asin(min(1.0, radius / dist)) + math.asin(NEGLIGIBLE_SIGMA / p):
+        if dist > radius and (math.acos(min(1.0, max(-1.0, _dot3(centre, b) / dist)))
+                              > math.asin(radius / dist) + math.asin(NEGLIGIBLE_SIGMA / p)):
             return 0.0, 0.0  # the cube's cone passes the component by
         if all_front and r_far < p - NEGLIGIBLE_SIGMA:
             return 0.0, _shadow_mass_eq9(ws, b, p)  # well in front: the paper's Eq. 9
@@ -587,9 +667,14 @@ def _cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, ha
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True)
-def _may_reach(cell, rho, sensor, axis, dist_mean, reach, half_angle):
-    """Whether a cell (centre, bounding radius rho) meets the cone from the sensor over the ball
-    of radius `reach` around the component's mean, truncated behind the ball: cheap culling."""
+def _may_reach(cell, rho, sensor, mean, axis, dist_mean, reach, half_angle):
+    """Whether a cell (centre, bounding radius rho) may meet the rays from the sensor to the ball
+    of radius `reach` around the component's mean: it must meet their box, and the cone from the
+    sensor over the ball, before its far side. Cheap culling."""
+    for i in range(cell.shape[0]):
+        if (cell[i] < min(sensor[i], mean[i] - reach) - rho
+                or cell[i] > max(sensor[i], mean[i] + reach) + rho):
+            return False
     dist_sq = 0.0
     along = 0.0
     for i in range(cell.shape[0]):
@@ -599,7 +684,7 @@ def _may_reach(cell, rho, sensor, axis, dist_mean, reach, half_angle):
     dist = math.sqrt(dist_sq)
     if dist > dist_mean + reach + rho:
         return False
-    if dist <= rho or dist_mean <= reach:
+    if dist <= rho * (1.0 + 1e-9) or dist_mean <= reach:  # the cell may hold the sensor
         return True
     opening = half_angle + math.asin(rho / dist)
     return opening >= math.pi or along >= dist * math.cos(opening)
@@ -618,7 +703,7 @@ def _evidence_at_cells(centers, half, means, covs, isos, evals, evecs, sensors, 
         fy = np.empty(4)
         cell = centers[c]
         for k in range(means.shape[0]):
-            if not _may_reach(cell, rho, sensors[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
+            if not _may_reach(cell, rho, sensors[k], means[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
                 continue
             if dim == 2:
                 h, m = _cell_evidence_2d(means[k], covs[k], isos[k], sensors[k], max_range[k],
@@ -649,15 +734,16 @@ def _map_2d(grid_origin, resolution, nx, ny, means, covs, isos, sensors, max_ran
         cell = np.empty(2)
         for k in range(chunk, means.shape[0], n_chunks):
             s, mu, r = sensors[k], means[k], reaches[k]
-            lo_x = int(math.floor((min(s[0], mu[0] - r) - grid_origin[0]) / resolution))
-            hi_x = int(math.floor((max(s[0], mu[0] + r) - grid_origin[0]) / resolution))
-            lo_y = int(math.floor((min(s[1], mu[1] - r) - grid_origin[1]) / resolution))
-            hi_y = int(math.floor((max(s[1], mu[1] + r) - grid_origin[1]) / resolution))
+            # Every cell _may_reach accepts: centres within rho of the box of sensor and ball.
+            lo_x = int(math.floor((min(s[0], mu[0] - r) - rho - grid_origin[0]) / resolution))
+            hi_x = int(math.floor((max(s[0], mu[0] + r) + rho - grid_origin[0]) / resolution))
+            lo_y = int(math.floor((min(s[1], mu[1] - r) - rho - grid_origin[1]) / resolution))
+            hi_y = int(math.floor((max(s[1], mu[1] + r) + rho - grid_origin[1]) / resolution))
             for iy in range(max(lo_y, 0), min(hi_y, ny - 1) + 1):
                 cell[1] = grid_origin[1] + (iy + 0.5) * resolution
                 for ix in range(max(lo_x, 0), min(hi_x, nx - 1) + 1):
                     cell[0] = grid_origin[0] + (ix + 0.5) * resolution
-                    if not _may_reach(cell, rho, s, axes[k], dist_means[k], r, half_angles[k]):
+                    if not _may_reach(cell, rho, s, mu, axes[k], dist_means[k], r, half_angles[k]):
                         continue
                     h, m = _cell_evidence_2d(mu, covs[k], isos[k], s, max_range[k], cell[0], cell[1], half, fx, fy)
                     acc_hits[chunk, iy, ix] += counts[k] * h
@@ -670,16 +756,20 @@ def _map_2d(grid_origin, resolution, nx, ny, means, covs, isos, sensors, max_ran
 # ---------------------------------------------------------------------------------------------
 
 def _isotropic_maps(covs: np.ndarray):
-    """Eigen-decomposition Sigma = V S V^T (ascending S) and the isotropic map S^-1/2 V^T (Sec. III-C)."""
+    """Sigma = V S V^T (ascending S), with S floored so that a singular Sigma stays usable, and the
+    isotropic map S^-1/2 V^T (Sec. III-C). Returns (Sigma rebuilt from the floored S, S, V, map)."""
     evals, evecs = np.linalg.eigh(covs)
-    floor = np.maximum(evals[..., -1:] * 1e-14, 1e-300)  # keeps a numerically singular Sigma finite
-    evals = np.maximum(evals, floor)
+    evals = np.maximum(evals, np.maximum(evals[..., -1:] * 1e-14, 1e-300))
+    covs = (evecs * evals[..., None, :]) @ np.swapaxes(evecs, -1, -2)
     isos = np.swapaxes(evecs, -1, -2) / np.sqrt(evals)[..., :, None]
-    return evals, np.ascontiguousarray(evecs), np.ascontiguousarray(isos)
+    return np.ascontiguousarray(covs), evals, np.ascontiguousarray(evecs), np.ascontiguousarray(isos)
 
 
 def _as_cells(centers, cell_size: float, dim: int) -> tuple[np.ndarray, float]:
-    centers = np.ascontiguousarray(np.asarray(centers, dtype=np.float64).reshape(-1, dim))
+    centers = np.asarray(centers, dtype=np.float64)
+    if centers.shape[-1] != dim:
+        raise ValueError(f"centers are {centers.shape[-1]}D points, the component or scans are {dim}D")
+    centers = np.ascontiguousarray(centers.reshape(-1, dim))
     if not (np.isfinite(cell_size) and cell_size > 0):
         raise ValueError(f"cell_size must be positive, got {cell_size}")
     return centers, 0.5 * float(cell_size)
@@ -697,7 +787,7 @@ def component_evidence(mean, cov, origin, centers, cell_size: float, *,
     mean = np.asarray(mean, dtype=np.float64).reshape(1, -1)
     cov = np.asarray(cov, dtype=np.float64).reshape(1, mean.shape[1], mean.shape[1])
     centers, half = _as_cells(centers, cell_size, mean.shape[1])
-    evals, evecs, isos = _isotropic_maps(cov)
+    cov, evals, evecs, isos = _isotropic_maps(cov)
     sensor = np.asarray(origin, dtype=np.float64).reshape(1, -1)
     everywhere = (np.ones_like(mean), np.zeros(1), np.full(1, np.inf), np.full(1, np.pi))  # no culling
     return _evidence_at_cells(centers, half, mean, cov, isos, evals, evecs, sensor, np.array([bool(max_range)]),
@@ -721,7 +811,7 @@ def eq5_geometry(mean, cov, origin, centers, cell_size: float):
     """
     mean = np.asarray(mean, dtype=np.float64)
     centers, half = _as_cells(centers, cell_size, 2)
-    _, _, iso = _isotropic_maps(np.asarray(cov, dtype=np.float64))
+    iso = _isotropic_maps(np.asarray(cov, dtype=np.float64))[3]
     q = iso @ (np.asarray(origin, dtype=np.float64) - mean)
     p = float(np.hypot(*q))
     beam = -q / p
@@ -743,7 +833,7 @@ def polygon_mass(vertices, *, approximate: bool = False) -> float:
     """Standard bivariate normal mass of a convex polygon (corners (n, 2), either orientation).
 
     Exact (Brianchon-Gram over bivariate normal orthants), or with approximate=True Green's
-    theorem with the erf approximation of Eq. 7 (Eq. 6-9; absolute error below 0.01).
+    theorem with the erf approximation of Eq. 7 (Eq. 6-9; absolute error up to 0.012).
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 2)
     xs, ys = v[:, 0].copy(), v[:, 1].copy()
@@ -751,41 +841,46 @@ def polygon_mass(vertices, *, approximate: bool = False) -> float:
     return float((_polygon_mass_eq9 if approximate else _polygon_mass_exact)(xs, ys, len(v)))
 
 
+@dataclass(frozen=True)
 class _Components:
-    """Every component of some scan models in the world frame, with what culling needs."""
+    """Every component of some scan models in the world frame (Eq. 2), with what culling needs."""
 
-    def __init__(self, models_with_poses, dim: int):
-        means, covs, sensors, counts, max_range = [], [], [], [], []
-        for model, pose in models_with_poses:
-            if model.dim != dim:
-                raise ValueError(f"scan model is {model.dim}D, cells are {dim}D")
-            sensor = pose.apply(model.origin[None])[0]
-            for mixture, is_free in ((model.occupied, False), (model.free, True)):
-                if mixture.n_components == 0:
-                    continue
-                world = mixture.transformed(pose)
-                means.append(world.means)
-                covs.append(world.covariances)
-                sensors.append(np.broadcast_to(sensor, world.means.shape))
-                counts.append(world.support * world.weights)
-                max_range.append(np.full(world.n_components, is_free))
-        if not means:
-            means, covs, sensors = [np.zeros((0, dim))], [np.zeros((0, dim, dim))], [np.zeros((0, dim))]
-            counts, max_range = [np.zeros(0)], [np.zeros(0, bool)]
-        self.means = np.ascontiguousarray(np.concatenate(means))
-        self.covs = np.ascontiguousarray(np.concatenate(covs))
-        self.sensors = np.ascontiguousarray(np.concatenate(sensors))
-        self.counts = np.concatenate(counts).astype(np.float64)
-        self.max_range = np.concatenate(max_range).astype(np.bool_)
-        self.evals, self.evecs, self.isos = _isotropic_maps(self.covs)
-        offset = self.means - self.sensors
-        self.dist_means = np.linalg.norm(offset, axis=1)
-        self.axes = np.ascontiguousarray(offset / np.maximum(self.dist_means, 1e-300)[:, None])
-        self.reaches = REACH_SIGMA * np.sqrt(self.evals[:, -1]) if len(self.means) else np.zeros(0)
-        self.half_angles = np.arcsin(np.minimum(self.reaches / np.maximum(self.dist_means, 1e-300), 1.0))
+    means: np.ndarray  # (K, d)
+    covs: np.ndarray  # (K, d, d)
+    evals: np.ndarray  # (K, d) ascending
+    evecs: np.ndarray  # (K, d, d) columns
+    isos: np.ndarray  # (K, d, d) isotropic maps
+    sensors: np.ndarray  # (K, d) sensor origin of each component's scan
+    counts: np.ndarray  # (K,) N pi_k
+    max_range: np.ndarray  # (K,) bool: from a free mixture
+    axes: np.ndarray  # (K, d) unit sensor -> mean
+    dist_means: np.ndarray  # (K,) |mean - sensor|
+    reaches: np.ndarray  # (K,) REACH_SIGMA * largest sigma
+    half_angles: np.ndarray  # (K,) half-angle of the cone from the sensor over the reach ball
 
-    def cone_args(self):
+    def cone(self):
         return self.axes, self.dist_means, self.reaches, self.half_angles
+
+
+def _world_components(models_with_poses, dim: int) -> _Components:
+    empty = (np.zeros((0, dim)), np.zeros((0, dim, dim)), np.zeros((0, dim)), np.zeros(0), np.zeros(0, bool))
+    parts = [empty]  # (means, covariances, sensors, counts, max_range) per mixture
+    for model, pose in models_with_poses:
+        if model.dim != dim:
+            raise ValueError(f"scan model is {model.dim}D, cells are {dim}D")
+        sensor = pose.apply(model.origin[None])[0]
+        for mixture, is_free in ((model.occupied, False), (model.free, True)):
+            world = mixture.transformed(pose)
+            parts.append((world.means, world.covariances, np.broadcast_to(sensor, world.means.shape),
+                          world.support * world.weights, np.full(world.n_components, is_free)))
+    means, covs, sensors, counts, max_range = (np.ascontiguousarray(np.concatenate(p)) for p in zip(*parts))
+    covs, evals, evecs, isos = _isotropic_maps(covs)
+    dist_means = np.linalg.norm(means - sensors, axis=1)
+    axes = np.ascontiguousarray((means - sensors) / np.maximum(dist_means, 1e-300)[:, None])
+    reaches = REACH_SIGMA * np.sqrt(evals[:, -1])
+    half_angles = np.arcsin(np.minimum(reaches / np.maximum(dist_means, 1e-300), 1.0))
+    return _Components(means, covs, evals, evecs, isos, sensors, counts, max_range, axes, dist_means,
+                       reaches, half_angles)
 
 
 def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -794,9 +889,9 @@ def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndar
     models_with_poses = list(models_with_poses)
     dim = models_with_poses[0][0].dim if models_with_poses else np.shape(centers)[-1]
     centers, half = _as_cells(centers, cell_size, dim)
-    comp = _Components(models_with_poses, dim)
+    comp = _world_components(models_with_poses, dim)
     return _evidence_at_cells(centers, half, comp.means, comp.covs, comp.isos, comp.evals, comp.evecs,
-                              comp.sensors, comp.max_range, comp.counts, *comp.cone_args())
+                              comp.sensors, comp.max_range, comp.counts, *comp.cone())
 
 
 def occupancy_at_cells(models_with_poses, centers, cell_size: float,
@@ -818,9 +913,9 @@ def analytic_map_2d(models_with_poses, grid: Grid) -> tuple[np.ndarray, np.ndarr
     """
     if grid.dim != 2:
         raise ValueError("analytic_map_2d: the grid must be 2D")
-    comp = _Components(models_with_poses, 2)
+    comp = _world_components(models_with_poses, 2)
     ny, nx = grid.array_shape
     budget = 512 * 2**20  # bytes for the per-worker copies of the counts
     n_chunks = int(max(1, min(4 * numba.get_num_threads(), budget // (16 * nx * ny))))
     return _map_2d(grid.origin, grid.resolution, nx, ny, comp.means, comp.covs, comp.isos, comp.sensors,
-                   comp.max_range, comp.counts, *comp.cone_args(), n_chunks)
+                   comp.max_range, comp.counts, *comp.cone(), n_chunks)

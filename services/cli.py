@@ -104,6 +104,51 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def _logging(verbose: bool) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+def cmd_server(args) -> int:
+    from services.map_server.server import ServerOptions, run_server
+
+    _logging(args.verbose)
+    return run_server(ServerOptions(
+        fleet=args.fleet, zenoh_listen=tuple(e for e in args.zenoh_listen or () if e), zenoh_connect=tuple(args.zenoh_connect or ()),
+        zenoh_config=args.zenoh_config, http=args.http or None, data_dir=args.data_dir,
+        synchronous=args.synchronous))
+
+
+def cmd_router(args) -> int:
+    from services.router import run_router
+
+    _logging(args.verbose)
+    return run_router(args.listen, args.connect or [], args.zenoh_config)
+
+
+def cmd_agent(args) -> int:
+    from services.agent.agent import AgentOptions, run_agent
+
+    _logging(args.verbose)
+    return run_agent(AgentOptions(
+        robot=args.robot, source=args.source, fleet=args.fleet, zenoh_connect=tuple(args.zenoh_connect),
+        zenoh_config=args.zenoh_config, corrections=args.corrections, scans=args.scans, rate=args.rate,
+        outbox=args.outbox, encoding=args.encoding, update_every=args.update_every,
+        odometry_only=args.odometry_only, max_range=args.max_range,
+        resend_s=args.resend, timeout=args.timeout))
+
+
+def _fleet_id(text: str) -> str:
+    from protocol import ProtocolError, check_id
+
+    try:
+        return check_id(text, "id")
+    except ProtocolError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gmmap", description="Gaussian-mixture occupancy maps for robot fleets")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -116,7 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax (use --bbox=...)")
     p.add_argument("--keep-fraction", type=float, default=1.0, help="keep this seeded fraction of the beams")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--method", choices=["mc", "raw"], default="mc")
+    p.add_argument("--method", choices=["mc", "analytic", "raw"], default="mc",
+                   help="mc: Monte Carlo (Eq. 11); analytic: per-cell evidence, Eq. 5/10 (2D); raw: counting grid")
     p.add_argument("--max-range", type=float, default=10.0, help="where no-return beams end, m")
     p.add_argument("--points-per-component", type=float, default=3.0)
     p.add_argument("--component-size", type=float, default=None,
@@ -139,14 +185,64 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--component-size", type=float, default=None)
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=cmd_inspect)
+
+    p = sub.add_parser("server", help="map server: Zenoh ingest and queryable, SQLite store, HTTP API")
+    p.add_argument("--fleet", type=_fleet_id, default="default")
+    p.add_argument("--zenoh-listen", action="append", metavar="EP",
+                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+    p.add_argument("--zenoh-connect", action="append", metavar="EP", help="router or peer to connect to (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file (scouting stays off unless it says so)")
+    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="HTTP address; '' for none")
+    p.add_argument("--data-dir", default="./gmmap-data")
+    p.add_argument("--synchronous", choices=["normal", "full"], default="normal",
+                   help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(run=cmd_server)
+
+    p = sub.add_parser("router", help="a Zenoh router (Python library), for setups without zenohd")
+    p.add_argument("--listen", action="append", metavar="EP", help="default tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--connect", action="append", metavar="EP", help="other routers (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE.json5")
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(run=cmd_router)
+
+    p = sub.add_parser("agent", help="robot agent: fit scans, publish them and pose-graph updates until acknowledged")
+    p.add_argument("--robot", type=_fleet_id, required=True)
+    p.add_argument("--fleet", type=_fleet_id, default="default")
+    p.add_argument("--zenoh-connect", action="append", metavar="EP", help="default tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE.json5")
+    p.add_argument("--source", required=True, metavar="carmen:PATH|kurt3d:DIR|xyz:PATH")
+    p.add_argument("--corrections", metavar="PATH",
+                   help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates")
+    p.add_argument("--scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
+    p.add_argument("--rate", type=float, default=0.0, help="scans per second (default: as fast as fitted)")
+    p.add_argument("--outbox", metavar="PATH", help="durable outbox (default ./gmmap-data/outbox-<robot>.db)")
+    p.add_argument("--encoding", choices=["q", "f32"], default="q")
+    p.add_argument("--update-every", type=int, default=100, metavar="N",
+                   help="scans between pose-graph updates (0: only at the end)")
+    p.add_argument("--odometry-only", action="store_true",
+                   help="with --corrections: publish the matched scans but no pose-graph updates")
+    p.add_argument("--max-range", type=float, default=10.0)
+    p.add_argument("--resend", type=float, default=1.0, metavar="S", help="resend what is unacknowledged after S s")
+    p.add_argument("--timeout", type=float, default=120.0, metavar="S",
+                   help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(run=cmd_agent)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # append-actions cannot have a replaceable default; a server that connects need not listen
+    if args.command == "server" and args.zenoh_listen is None and args.zenoh_connect is None:
+        args.zenoh_listen = ["tcp/127.0.0.1:7447"]
+    if args.command == "router" and args.listen is None:
+        args.listen = ["tcp/127.0.0.1:7447"]
+    if args.command == "agent" and args.zenoh_connect is None:
+        args.zenoh_connect = ["tcp/127.0.0.1:7447"]
     try:
         return args.run(args)
-    except (ValueError, FileNotFoundError) as exc:  # DatasetError and ProtocolError are ValueErrors
+    except (ValueError, OSError) as exc:  # DatasetError and ProtocolError are ValueErrors
         print(f"gmmap {args.command}: {exc}", file=sys.stderr)
         return 2
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmm_core import FitConfig, Grid, ScanModel, fit_scan
+from gmm_core.analytic import analytic_map_2d
 from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
 from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
@@ -14,7 +15,7 @@ from gmm_core.pose import Pose
 from protocol import ScanMessage, decode, encode
 from services.datasets import RangeScan
 
-METHODS = ("mc", "raw")
+METHODS = ("mc", "analytic", "raw")
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,8 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
     if not scans:
         raise ValueError("replay: the log holds no scans")
     dim = scans[0].pose.dim
+    if method == "analytic" and dim != 2:
+        raise ValueError("method: analytic maps are 2D only; use mc for 3D")
     if bbox is None:
         lo, hi = data_extent(scans, config.max_range)
     else:
@@ -88,6 +91,10 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
     else:
         models = [through_wire(m, encoding) for m in fit_scans(scans, config, tick("fit", len(scans)))]
         components = sum(m.n_components for m in models)
+    if method == "analytic":
+        hits, misses = analytic_map_2d([(m, s.pose) for m, s in zip(models, scans)], grid)
+        hits, misses = hits.astype(np.float32), misses.astype(np.float32)
+    elif method == "mc":
         hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
                                    samples_per_cell=samples_per_cell, progress=tick("trace", len(scans)))
     return ReplayMap(grid, hits, misses, map_estimate(hits, misses, prior), len(scans), components)

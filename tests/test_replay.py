@@ -83,3 +83,15 @@ def test_inspect_reports_bytes_against_raw(data_dir, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["scans"] == 910 and report["raw_bytes"] == 910 * 180 * 4
     assert report["bytes"] / report["components"] <= 10.0  # issue 4: <= 10 B per 2D component
+
+
+def test_analytic_method_is_2d_only_and_close_to_monte_carlo(data_dir, tmp_path):
+    log = str(data_dir / "carmen" / "intel-corrected.log.gz")
+    maps = {}
+    for method in ("mc", "analytic"):
+        out = tmp_path / f"{method}.npz"
+        assert main(["replay", log, "--bbox=-6,-6,4,4", "--resolution", "0.1", "--method", method,
+                     "--out", str(out)]) == 0
+        maps[method] = np.load(out)["prob"]
+    assert np.abs(maps["mc"] - maps["analytic"]).mean() < 0.03
+    assert main(["replay", str(data_dir / "3d" / "kurt3d"), "--method", "analytic"]) == 2
