@@ -1,0 +1,122 @@
+"""Ingest throughput of a real `gmmap server` process: scan messages stored and acknowledged per second.
+
+The Intel log is fitted once; its 910 encoded scans are then published as --robots robots (so
+every message is new to the server) from one Zenoh peer as fast as the link takes them. The
+clock runs from the first put to the last Ack; every Ack comes after the SQLite commit, so
+this is the end-to-end rate of durable ingest. Usage:
+
+    .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full]
+"""
+from __future__ import annotations
+
+import argparse
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gmm_core import Pose, fit_scan  # noqa: E402
+from protocol import (Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key,  # noqa: E402
+                      scan_key)
+from services.datasets import read_scans  # noqa: E402
+from services.zenoh_config import zenoh_config  # noqa: E402
+
+LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, default=6)
+    parser.add_argument("--synchronous", choices=["normal", "full"], default="normal")
+    args = parser.parse_args()
+
+    scans = list(read_scans(LOG))
+    models = [fit_scan(s.hits, s.no_return) for s in scans]
+    robots = [f"r{i}" for i in range(args.robots)]
+    messages = [(scan_key("default", r, s.index), encode(ScanMessage("default", r, s.index, s.stamp, m, s.pose)))
+                for r in robots for s, m in zip(scans, models)]
+    total_bytes = sum(len(raw) for _, raw in messages)
+
+    port = free_port()
+    with tempfile.TemporaryDirectory() as data:
+        server = subprocess.Popen([sys.executable, "-m", "services.cli", "server", "--zenoh-listen",
+                                   f"tcp/127.0.0.1:{port}", "--http", "", "--data-dir", data,
+                                   "--synchronous", args.synchronous], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        session = None
+        try:
+            if "ready" not in server.stderr.readline():
+                raise SystemExit("server did not start")
+            session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
+            acked, done, last_ack = set(), threading.Event(), [0.0]
+            lock = threading.Lock()
+
+            def on_ack(sample):
+                ack = decode(sample.payload.to_bytes(), expect=Ack)
+                with lock:
+                    acked.update((ack.robot, i) for i in ack.ids)
+                    last_ack[0] = time.perf_counter()
+                    if len(acked) == len(messages):
+                        done.set()
+
+            subs = [session.declare_subscriber(ack_key("default", r), on_ack) for r in robots]
+            probe = session.declare_publisher(scan_key("default", robots[0], 0))
+            while not probe.matching_status.matching:
+                time.sleep(0.01)
+            time.sleep(0.2)  # our Ack subscribers reach the server
+            start = time.perf_counter()
+            for key, raw in messages:
+                session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
+            published = time.perf_counter()
+            if not done.wait(120):
+                raise SystemExit(f"only {len(acked)} of {len(messages)} acknowledged")
+            seconds = last_ack[0] - start
+
+            # A correction of every node of one robot: put -> stored, applied and acknowledged.
+            latencies = []
+            for revision in range(1, 6):
+                acked_rev = threading.Event()
+                got = lambda s, r=revision: decode(s.payload.to_bytes(), expect=Ack).ids == (r,) and acked_rev.set()  # noqa: E731
+                sub = session.declare_subscriber(ack_key("default", robots[0]), got)
+                update = PoseGraphUpdate("default", robots[0], revision,
+                                         tuple((s.index, s.pose.compose(Pose.from_xytheta(0.01 * revision, 0, 0)))
+                                               for s in scans))
+                raw = encode(update)
+                t = time.perf_counter()
+                session.put(poses_key("default", robots[0]), raw, congestion_control=zenoh.CongestionControl.BLOCK)
+                if not acked_rev.wait(10):
+                    raise SystemExit("pose update not acknowledged")
+                latencies.append(time.perf_counter() - t)
+                sub.undeclare()
+            for sub in subs:
+                sub.undeclare()
+            probe.undeclare()
+        finally:
+            if session is not None:
+                session.close()
+            server.terminate()
+            server.wait(15)
+    n = len(messages)
+    print(f"{n} scan messages ({total_bytes / n:.0f} B each, {args.robots} robots), synchronous={args.synchronous}: "
+          f"published in {published - start:.2f} s, all stored and acknowledged in {seconds:.2f} s "
+          f"-> {n / seconds:.0f} messages/s, {total_bytes / seconds / 1e6:.1f} MB/s")
+    print(f"pose-graph update of all {len(scans)} nodes of one robot ({len(raw)} B), put -> stored, applied, "
+          f"acknowledged: median {sorted(latencies)[2] * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,175 @@
+"""`gmmap server`: one process holding a fleet's map, fed over Zenoh, served over Zenoh and HTTP.
+
+Start-up: open the store, replay it into the FleetMap, then open the Zenoh session (scan and
+pose subscribers, occupancy queryable) and the HTTP app under uvicorn. SIGTERM/SIGINT stop
+the HTTP server, undeclare the Zenoh entities, drain the ingest queue and close the session.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import zenoh
+
+from gmm_core import Grid
+from protocol import (MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard,
+                      scan_wildcard)
+from services.api.params import MAX_CELLS, MAX_RESOLUTION, MIN_RESOLUTION  # one set of limits for both APIs
+from services.zenoh_config import zenoh_config
+
+from .fleet_map import FleetMap
+from .ingest import Ingest
+from .state import ServerState
+from .store import Store
+
+log = logging.getLogger("gmmap.server")
+
+
+
+@dataclass
+class ServerOptions:
+    fleet: str = "default"
+    zenoh_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    zenoh_connect: tuple[str, ...] = ()
+    zenoh_config: str | None = None
+    http: str | None = "127.0.0.1:8000"  # host:port, or None for no HTTP
+    data_dir: str = "./gmmap-data"
+    synchronous: str = "NORMAL"
+
+
+def query_grid(query: MapQuery) -> Grid:
+    """The grid of a MapQuery, within the limits the HTTP API also enforces."""
+    if not MIN_RESOLUTION <= query.resolution <= MAX_RESOLUTION:
+        raise ProtocolError("resolution", f"must lie in [{MIN_RESOLUTION}, {MAX_RESOLUTION}] m, got {query.resolution}")
+    grid = Grid.from_bbox(query.lo, query.hi, query.resolution)
+    if grid.n_cells > MAX_CELLS:
+        raise ProtocolError("bbox", f"{grid.n_cells} cells exceed the limit of {MAX_CELLS} per query")
+    return grid
+
+
+def answer(state: ServerState, payload: bytes) -> bytes:
+    """MapQuery bytes -> MapReply bytes; ProtocolError or ValueError for a bad query."""
+    query = decode(payload, expect=MapQuery)
+    if query.fleet != state.fleet:
+        raise ProtocolError("fleet", f"this server holds fleet {state.fleet}, not {query.fleet}")
+    grid = query_grid(query)
+    started = time.perf_counter()
+    prob = state.fleet_map.occupancy(grid, query.robots)
+    state.metrics.query_seconds.observe(time.perf_counter() - started)
+    return encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
+
+
+class ZenohSide:
+    """The Zenoh session of a server: ingest subscribers, Ack publisher, occupancy queryable."""
+
+    def __init__(self, state: ServerState, ingest: Ingest, config: zenoh.Config):
+        self.state = state
+        self.session = zenoh.open(config)
+        # Queries run off Zenoh's threads so a slow map never stalls ingest; one worker because
+        # the FleetMap traces one query at a time anyway.
+        self._queries = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gmmap-query")
+        fleet = state.fleet
+        on_sample = lambda sample: ingest.submit(str(sample.key_expr), sample.payload.to_bytes())  # noqa: E731
+        self._subscribers = [self.session.declare_subscriber(scan_wildcard(fleet), on_sample),
+                             self.session.declare_subscriber(poses_wildcard(fleet), on_sample)]
+        self._queryable = self.session.declare_queryable(
+            occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q))
+
+    def publish(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, express=True)
+
+    def _reply(self, query: zenoh.Query) -> None:
+        with query:  # leaving the block finalises the query (the querier stops waiting)
+            try:
+                payload = query.payload
+                if payload is None:
+                    raise ProtocolError("payload", "an occupancy query carries a MapQuery")
+                query.reply(occupancy_key(self.state.fleet), answer(self.state, payload.to_bytes()))
+            except (ProtocolError, ValueError) as error:
+                query.reply_err(str(error))
+            except Exception as error:  # noqa: BLE001 - reported to the querier, logged here
+                log.exception("occupancy query failed")
+                query.reply_err(f"internal error: {type(error).__name__}")
+
+    def stop_ingest(self) -> None:
+        """Undeclare the subscribers (callback subscribers outlive their Python reference)."""
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+        self._subscribers = []
+
+    def close(self) -> None:
+        self.stop_ingest()
+        self._queryable.undeclare()
+        self._queries.shutdown(wait=True)
+        self.session.close()
+
+
+def start_http(state: ServerState, address: str):
+    """uvicorn on host:port in a thread; (server, thread), or None when the API is absent."""
+    try:
+        from services.api.app import create_app
+    except ImportError as error:
+        log.warning("HTTP disabled: services.api.app is not available (%s)", error)
+        return None
+    import uvicorn
+
+    host, _, port = address.rpartition(":")
+    config = uvicorn.Config(create_app(state), host=host or "127.0.0.1", port=int(port),
+                            log_level="warning", lifespan="on")
+    server = uvicorn.Server(config)
+    # uvicorn leaves signal handling to the main thread when it runs elsewhere.
+    thread = threading.Thread(target=server.run, name="gmmap-http", daemon=True)
+    thread.start()
+    while not server.started:
+        if not thread.is_alive():
+            raise OSError(f"HTTP server could not start on {address}")
+        time.sleep(0.01)
+    return server, thread
+
+
+def run_server(options: ServerOptions) -> int:
+    started = time.perf_counter()
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+
+    store = Store(options.data_dir, synchronous=options.synchronous)
+    state = ServerState(options.fleet, FleetMap(options.fleet), store)
+    zenoh_side: ZenohSide | None = None
+    ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload))
+    replayed = ingest.replay()
+    ingest.start()
+    http = None
+    try:
+        config = zenoh_config("peer", listen=options.zenoh_listen, connect=options.zenoh_connect,
+                              config_file=options.zenoh_config)
+        try:
+            zenoh_side = ZenohSide(state, ingest, config)
+        except zenoh.ZError as error:
+            raise OSError(f"cannot open the Zenoh session: {error}") from None
+        if options.http:
+            http = start_http(state, options.http)
+        print(f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
+              f"zenoh {','.join(options.zenoh_listen) or '-'}"
+              f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
+              f"http {'http://' + options.http if http else 'off'}, {time.perf_counter() - started:.1f} s",
+              file=sys.stderr, flush=True)
+        stop.wait()
+        print("gmmap server: stopping", file=sys.stderr, flush=True)
+    finally:
+        if http is not None:
+            server, thread = http
+            server.should_exit = True
+            thread.join(5)
+        if zenoh_side is not None:
+            zenoh_side.stop_ingest()  # no new messages; then what is queued is stored and acked
+        ingest.stop()
+        if zenoh_side is not None:
+            zenoh_side.close()
+        store.close()
+    return 0

@@ -1,0 +1,53 @@
+"""Zenoh session configuration shared by the server, the router and the agents.
+
+The library's defaults listen on every interface and scout by multicast; here nothing is
+discovered implicitly: endpoints come from the command line or a config file, and scouting
+stays off unless that file turns it on (DESIGN.md, "Zenoh notes").
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+
+import zenoh
+
+RECONNECT_MS = 500  # peers retry lost links every 0.5 s (library default backs off to 4 s)
+
+
+def zenoh_config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (),
+                 config_file: str | None = None) -> zenoh.Config:
+    """A Config in `mode` ("peer", "router" or "client") with explicit endpoints.
+
+    Robot agents are clients: a leaf that reaches the fleet through one server or router. (Peers
+    that meet only through a router are not bridged by it when gossip scouting is off, so an
+    agent in peer mode behind `gmmap router` would never reach the server.)
+
+    Values from `config_file` (JSON5) win over the defaults set here, except endpoints given
+    on the command line, which are always applied.
+    """
+    config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    library = zenoh.Config()
+
+    def unset(key: str) -> bool:  # the file left the library's default in place
+        return config.get_json(key) == library.get_json(key)
+
+    def default(key: str, value) -> None:
+        if unset(key):
+            config.insert_json5(key, json.dumps(value))
+
+    default("mode", mode)
+    default("scouting/multicast/enabled", False)
+    default("scouting/gossip/enabled", False)
+    if mode == "client":  # keep trying until the router or server is up, and after losing it
+        default("connect/timeout_ms", -1)
+        default("connect/exit_on_failure", False)
+    for side in ("connect", "listen"):
+        default(f"{side}/retry", {"period_init_ms": RECONNECT_MS, "period_max_ms": RECONNECT_MS,
+                                  "period_increase_factor": 1.0})
+    if listen:
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    elif unset("listen/endpoints"):
+        config.insert_json5("listen/endpoints", "[]")  # never the library's "all interfaces"
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return config

@@ -1,0 +1,327 @@
+"""The map server and robot agents as processes: real Zenoh on 127.0.0.1 (scouting off), real
+uvicorn, SQLite in tmp_path, the real Intel logs. Every subprocess is killed in a finally."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from gmm_core import FitConfig, Grid, Pose, fit_scan
+from gmm_core.metrics import grid_auroc
+from gmm_core.occupancy import map_estimate
+from gmm_core.reconstruct import count_beams, reconstruct
+from gmm_core.sampling import scan_seed
+from protocol import Ack, MapQuery, MapReply, ScanMessage, ack_key, decode, encode, poses_key, scan_key
+from services.agent.map_client import MapQueryError, query_bytes
+from services.replay import data_extent
+from services.zenoh_config import zenoh_config
+
+ROOT = Path(__file__).resolve().parents[1]
+HALVES = {"a": "0:455", "b": "455:910"}
+RESOLUTION = 0.1
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(condition, timeout: float, what: str, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+class Processes:
+    """Subprocesses of one test, each logging to a file; all killed at the end."""
+
+    def __init__(self, tmp_path: Path):
+        self.tmp = tmp_path
+        self.running: list[subprocess.Popen] = []
+        self.env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        log = open(self.tmp / f"{name}.log", "ab")
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.tmp, env=self.env,
+                                stdout=log, stderr=subprocess.STDOUT)
+        proc.log_path = self.tmp / f"{name}.log"
+        self.running.append(proc)
+        return proc
+
+    def log(self, proc) -> str:
+        return proc.log_path.read_text(errors="replace")
+
+    def ready(self, proc, banner: str) -> subprocess.Popen:
+        wait_for(lambda: banner in self.log(proc) or proc.poll() is not None, 30, banner)
+        assert proc.poll() is None, self.log(proc)
+        return proc
+
+    def server(self, name: str, data: Path, zport: int, hport: int, *zenoh: str) -> subprocess.Popen:
+        zenoh = zenoh or ("--zenoh-listen", f"tcp/127.0.0.1:{zport}")
+        proc = self.start(name, "server", *zenoh, "--http", f"127.0.0.1:{hport}", "--data-dir", str(data))
+        return self.ready(proc, "gmmap server ready")
+
+    def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
+        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
+                          "--source", f"carmen:{data_dir / 'radish' / 'intel.clf.bz2'}",
+                          "--corrections", str(data_dir / "carmen" / "intel-corrected.log.gz"),
+                          "--scans", HALVES[robot], "--outbox", str(self.tmp / f"outbox-{robot}.db"), *extra)
+
+    def finish(self, proc, timeout: float) -> int:
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{proc.args[3:5]} still running after {timeout} s:\n{self.log(proc)[-3000:]}")
+
+    def kill_all(self) -> None:
+        for proc in self.running:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.fixture
+def procs(tmp_path):
+    p = Processes(tmp_path)
+    try:
+        yield p
+    finally:
+        p.kill_all()
+
+
+@pytest.fixture
+def session_to():
+    """Open test-side Zenoh peers connected to a server; all closed at the end."""
+    opened = []
+
+    def open_(zport: int) -> zenoh.Session:
+        s = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
+        opened.append(s)
+        return s
+
+    yield open_
+    for s in opened:
+        s.close()
+
+
+@pytest.fixture(scope="module")
+def intel(data_dir):
+    """Matched (raw, corrected) Intel scans, the 10 cm grid over them and the truth grid."""
+    from services.datasets import match_by_timestamp, read_scans
+
+    pairs = match_by_timestamp(read_scans(data_dir / "radish" / "intel.clf.bz2"),
+                               read_scans(data_dir / "carmen" / "intel-corrected.log.gz"))
+    assert len(pairs) == 910
+    corrected = [fixed for _, fixed in pairs]
+    lo, hi = data_extent(corrected, 10.0)
+    grid = Grid.from_bbox(np.floor(lo), np.ceil(hi), RESOLUTION)
+    truth = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in corrected], 10.0)
+    return pairs, grid, truth
+
+
+def map_query(grid: Grid) -> bytes:
+    return encode(MapQuery("default", grid.origin, grid.upper, grid.resolution))
+
+
+def served_map(session, grid: Grid) -> tuple[bytes, np.ndarray]:
+    raw = query_bytes(session, "default", map_query(grid), timeout=30)
+    reply = decode(raw, expect=MapReply, max_bytes=len(raw))
+    assert reply.probabilities.shape == grid.array_shape
+    return raw, reply.probabilities
+
+
+def http_get(port: int, path: str) -> bytes:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as response:
+        return response.read()
+
+
+def metric(text: str, name: str, **labels) -> float:
+    """Sum of a Prometheus sample over the series whose labels include `labels`."""
+    total = 0.0
+    for line in text.splitlines():
+        if line.startswith(name + "{") or line.startswith(name + " "):
+            series, value = line.rsplit(" ", 1)
+            if all(f'{k}="{v}"' in series for k, v in labels.items()):
+                total += float(value)
+    return total
+
+
+def store_db(data: Path) -> sqlite3.Connection:
+    return sqlite3.connect(f"file:{data / 'gmmap.db'}?mode=ro", uri=True, timeout=10)
+
+
+def stored_nodes(data: Path, robot: str) -> set[int]:
+    with store_db(data) as db:
+        return {n for (n,) in db.execute("SELECT node FROM scans WHERE robot = ?", (robot,))}
+
+
+def acked_nodes(outbox: Path) -> set[int]:
+    db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
+    try:
+        return {n for (n,) in db.execute("SELECT id FROM acked WHERE kind = 'scan'")}
+    finally:
+        db.close()
+
+
+def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, data_dir, tmp_path):
+    pairs, grid, (truth_h, truth_m) = intel
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    session = session_to(zport)
+
+    # Phase 1: robots without a SLAM back end publish their halves at odometry poses.
+    agents = [procs.agent(r, zport, data_dir, "--odometry-only", "--timeout", "60") for r in HALVES]
+    for a in agents:
+        assert procs.finish(a, 90) == 0, procs.log(a)
+    _, odometry_map = served_map(session, grid)
+
+    # Phase 2: the same robots again, now with their back end: every scan is a resend (stored
+    # once), then the corrected poses every 100 scans and at the end.
+    agents = [procs.agent(r, zport, data_dir, "--timeout", "60") for r in HALVES]
+    for a in agents:
+        assert procs.finish(a, 90) == 0, procs.log(a)
+    raw_reply, corrected_map = served_map(session, grid)
+
+    assert stored_nodes(data, "a") == set(range(455)) and stored_nodes(data, "b") == set(range(455, 910))
+    robots = {r["robot"]: r for r in json.loads(http_get(hport, "/v1/robots"))}
+    assert {r: (v["nodes"], v["pose_revision"]) for r, v in robots.items()} == {"a": (455, 5), "b": (455, 5)}
+
+    # The agent's bytes are the offline fit of the same scan through the same encoding.
+    with store_db(data) as db:
+        stored = dict(((r, n), raw) for r, n, raw in db.execute("SELECT robot, node, raw FROM scans"))
+    for robot, node in (("a", 0), ("b", 455)):
+        raw_scan = pairs[node][0]
+        model = fit_scan(raw_scan.hits, raw_scan.no_return, FitConfig())
+        expected = ScanMessage("default", robot, node, raw_scan.stamp, model, raw_scan.odom_pose)
+        assert encode(expected, "q") == stored[(robot, node)]
+
+    # Served map == offline reconstruction of the stored models at the corrected poses, with the
+    # FleetMap's seeds, in its (robot, node) order.
+    models = {key: decode(raw, expect=ScanMessage).model for key, raw in stored.items()}
+    offline_h, offline_m = reconstruct(
+        grid, [(models[(r, n)], pairs[n][1].pose, scan_seed(r, n)) for r, n in sorted(models)],
+        samples_per_cell=4.0)
+    offline = map_estimate(offline_h, offline_m, 0.2)
+    assert np.array_equal(corrected_map, offline)
+
+    # HTTP serves the same array.
+    bbox = ",".join(repr(float(v)) for v in (*grid.origin, *grid.upper))
+    npy = http_get(hport, f"/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy")
+    assert np.array_equal(np.load(io.BytesIO(npy)), corrected_map)
+
+    after, before = grid_auroc(corrected_map, truth_h, truth_m), grid_auroc(odometry_map, truth_h, truth_m)
+    print(f"AUROC vs corrected raw grid: odometry {before:.4f}, corrected {after:.4f}")
+    assert after >= 0.99
+    assert before < after - 0.05
+
+    text = http_get(hport, "/metrics").decode()
+    assert metric(text, "gmmap_messages_accepted_total", kind="scan") >= 2 * 910
+    assert metric(text, "gmmap_messages_accepted_total", kind="poses") >= 10  # resends count too
+    assert metric(text, "gmmap_bytes_received_total", robot="a") > 0
+
+
+def test_kill_9_during_ingest_loses_no_acknowledged_scan(procs, session_to, intel, data_dir, tmp_path):
+    _, grid, _ = intel
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    server = procs.server("server-1", data, zport, hport)
+    agents = [procs.agent(r, zport, data_dir, "--rate", "150", "--resend", "0.5", "--timeout", "60")
+              for r in HALVES]
+    wait_for(lambda: len(stored_nodes(data, "a")) + len(stored_nodes(data, "b")) >= 200, 60, "200 stored scans",
+             interval=0.02)
+    server.send_signal(signal.SIGKILL)
+    server.wait()
+    for robot in HALVES:
+        acked = acked_nodes(tmp_path / f"outbox-{robot}.db")
+        assert acked, f"{robot}: nothing acknowledged before the kill"
+        assert acked <= stored_nodes(data, robot), f"{robot}: acknowledged scans missing from the store"
+    assert all(a.poll() is None for a in agents), "an agent finished without the server"
+
+    server = procs.server("server-2", data, zport, hport)
+    for a in agents:
+        assert procs.finish(a, 90) == 0, procs.log(a)
+    assert stored_nodes(data, "a") == set(range(455)) and stored_nodes(data, "b") == set(range(455, 910))
+
+    first, _ = served_map(session_to(zport), grid)
+    server.send_signal(signal.SIGTERM)
+    assert server.wait(15) == 0, procs.log(server)
+    assert "gmmap server: stopping" in procs.log(server)
+    procs.server("server-3", data, zport, hport)
+    second, _ = served_map(session_to(zport), grid)
+    assert first == second
+
+
+def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to, tmp_path):
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    session = session_to(zport)
+    wait_for(lambda: session.declare_publisher(scan_key("default", "fuzz", 0)).matching_status.matching, 10,
+             "the server's subscribers")
+    rng = np.random.default_rng(5)
+    garbage = [rng.bytes(int(n)) for n in rng.integers(0, 400, 100)]
+    for i, payload in enumerate(garbage):
+        session.put(scan_key("default", "fuzz", i), payload)
+        session.put(poses_key("default", "fuzz"), payload)
+    # Well-formed messages that still do not belong: wrong type on the key, robot not the key's.
+    model = fit_scan(rng.normal(size=(30, 2)) + [3, 0], np.zeros((0, 2)))
+    good = ScanMessage("default", "ok", 7, 1.0, model, Pose.identity(2))
+    session.put(scan_key("default", "fuzz", 1000), encode(Ack("default", "fuzz", "scan", (1,))))
+    session.put(scan_key("default", "fuzz", 7), encode(good))
+    expected_rejections = 2 * len(garbage) + 2
+
+    acks = []
+    sub = session.declare_subscriber(ack_key("default", "ok"), lambda s: acks.append(decode(s.payload.to_bytes())))
+    try:
+        wait_for(lambda: (session.put(scan_key("default", "ok", 7), encode(good)), acks)[1], 10, "the Ack of a good scan",
+                 interval=0.2)
+    finally:
+        sub.undeclare()
+    assert acks[0].ids == (7,) and acks[0].kind == "scan"
+
+    text = wait_for(lambda: (t := http_get(hport, "/metrics").decode())
+                    and metric(t, "gmmap_messages_rejected_total") >= expected_rejections and t, 10, "rejections")
+    assert metric(text, "gmmap_messages_rejected_total") == expected_rejections
+    assert metric(text, "gmmap_messages_rejected_total", kind="scan", reason="key.robot") == 1
+    assert metric(text, "gmmap_messages_rejected_total", kind="scan", reason="type") == 1
+    with store_db(data) as db:
+        assert db.execute("SELECT robot, node FROM scans").fetchall() == [("ok", 7)]
+        assert db.execute("SELECT COUNT(*) FROM poses").fetchone() == (0,)
+    # Still serving: over Zenoh (bad queries get an error reply naming the field) and over HTTP.
+    with pytest.raises(MapQueryError, match="message"):
+        query_bytes(session, "default", b"not a query")
+    with pytest.raises(MapQueryError, match="resolution"):
+        query_bytes(session, "default", encode(MapQuery("default", [0, 0], [1, 1], 0.001)))
+    _, prob = served_map(session, Grid.from_bbox([0, -2], [6, 2], 0.1))
+    assert prob.max() > 0.5
+    assert json.loads(http_get(hport, "/healthz"))["status"] == "ok"
+
+
+def test_agent_and_server_meet_through_a_router(procs, data_dir, tmp_path):
+    """Agent (client) -> `gmmap router` <- server (peer), the agent started first."""
+    rport, data = free_port(), tmp_path / "data"
+    router = procs.ready(procs.start("router", "router", "--listen", f"tcp/127.0.0.1:{rport}"), "gmmap router ready")
+    agent = procs.start("agent", "agent", "--robot", "solo", "--zenoh-connect", f"tcp/127.0.0.1:{rport}",
+                        "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}", "--scans", "0:50",
+                        "--outbox", str(tmp_path / "outbox.db"), "--timeout", "30")
+    procs.server("server", data, 0, free_port(), "--zenoh-connect", f"tcp/127.0.0.1:{rport}")
+    assert procs.finish(agent, 60) == 0, procs.log(agent)
+    assert stored_nodes(data, "solo") == set(range(50))
+    router.send_signal(signal.SIGINT)
+    assert router.wait(10) == 0

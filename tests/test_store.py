@@ -1,0 +1,130 @@
+"""The durable pieces without a network: the server's SQLite store and ingest path, the agent's outbox."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from gmm_core import Pose, fit_scan
+from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key
+from services.agent.outbox import Outbox
+from services.map_server.fleet_map import FleetMap
+from services.map_server.ingest import Ingest
+from services.map_server.state import ServerState
+from services.map_server.store import Store
+
+
+@pytest.fixture(scope="module")
+def model():
+    rng = np.random.default_rng(1)
+    return fit_scan(rng.normal(size=(40, 2)) * 0.2 + [2.0, 0.0], np.zeros((0, 2)))
+
+
+def scan(model, robot="r", node=0, x=0.0):
+    return ScanMessage("default", robot, node, float(node), model, Pose.from_xytheta(x, 0.0, 0.0))
+
+
+def poses(robot, revision, items, anchor=None):
+    return PoseGraphUpdate("default", robot, revision, tuple((n, Pose.from_xytheta(x, 0, 0)) for n, x in items), anchor)
+
+
+def test_store_keeps_each_scan_once_and_survives_reopening(tmp_path, model):
+    store = Store(tmp_path)
+    first = scan(model, node=3)
+    assert store.put_scan(first, encode(first)) is True
+    assert store.put_scan(first, b"resent bytes are not stored") is False
+    assert store.put_scans([(scan(model, node=1), encode(scan(model, node=1))), (first, encode(first))]) == [True, False]
+    store.close()
+    store = Store(tmp_path)
+    assert store.scan_count("default") == 2 and store.nodes("default", "r") == {1, 3}
+    assert store.scan_bytes("default", "r", 3) == encode(first)
+    assert [r.message.node for r in store.load("default")] == [1, 3]
+    assert list(store.load("other")) == []
+
+
+def test_store_merges_pose_graphs_and_ignores_older_revisions(tmp_path):
+    store = Store(tmp_path)
+    anchor = Pose.from_xytheta(10, 0, 0)
+    update = poses("r", 2, [(0, 1.0), (1, 1.0)], anchor)
+    assert store.put_poses(update, encode(update))
+    assert store.put_poses(poses("r", 1, [(0, 5.0)]), b"") is False  # older: nothing changes
+    newer = poses("r", 3, [(1, 2.0), (2, 2.0)])  # lists only the nodes it moves, no anchor
+    assert store.put_poses(newer, encode(newer))
+    held = store.pose_graph("default", "r")
+    assert held.revision == 3
+    assert {n: p.t[0] for n, p in held.poses} == {0: 1.0, 1: 2.0, 2: 2.0}
+    assert held.anchor is not None and held.anchor.t[0] == 10
+    assert [type(r.message) for r in store.load("default")] == [PoseGraphUpdate]
+
+
+def run_ingest(state, *phases):
+    """Submit each phase's (key, payload) items, waiting for the previous phase's Acks."""
+    acks = []
+    ingest = Ingest(state, lambda key, payload: acks.append((key, decode(payload, expect=Ack))))
+    ingest.replay()
+    ingest.start()
+    for items in phases:
+        seen = len(acks)
+        for key, payload in items:
+            ingest.submit(key, payload)
+        deadline = time.monotonic() + 10
+        while len(acks) == seen and time.monotonic() < deadline:
+            time.sleep(0.01)
+    ingest.stop()
+    return acks
+
+
+def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, model):
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    good = scan(model, node=0)
+    three_d = ScanMessage("default", "r", 9, 0.0, fit_scan(np.random.default_rng(0).normal(size=(30, 3)) + 3,
+                                                           np.zeros((0, 3))), Pose.identity(3))
+    acks = run_ingest(state, [
+        (scan_key("default", "r", 0), encode(good)),
+        (scan_key("default", "r", 0), encode(good)),  # a resend: acked again, stored once
+        (scan_key("default", "x", 0), encode(good)),  # key names another robot
+        (scan_key("default", "r", 5), encode(good)),  # key names another node
+        (scan_key("default", "r", 9), encode(three_d)),  # a 3D scan into a 2D map
+        (poses_key("default", "r"), encode(good)),  # a scan on the pose key
+        (scan_key("default", "r", 1), b"\x00garbage"),
+        ("gmmap/other/r/scan/1", encode(good)),  # another fleet
+    ])
+    assert [(k, a.kind, a.ids) for k, a in acks] == [("gmmap/default/r/ack", "scan", (0, 0))]
+    assert state.store.nodes("default", "r") == {0}
+    text = state.metrics.render().decode()
+    for reason in ("key.robot", "key.node", "dimension", "type", "message", "key"):
+        assert f'reason="{reason}"' in text, reason
+    assert state.metrics.rejected_total() == 6
+
+
+def test_a_correction_that_arrives_before_its_scan_is_applied_to_it(tmp_path, model):
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    update = poses("r", 1, [(0, 4.0), (1, 6.0)])
+    acks = run_ingest(state, [(scan_key("default", "r", 0), encode(scan(model, node=0, x=0.0))),
+                              (poses_key("default", "r"), encode(update))],
+                      [(scan_key("default", "r", 1), encode(scan(model, node=1, x=0.0)))])  # after its pose
+    assert [(a.kind, a.ids) for _, a in acks] == [("scan", (0,)), ("poses", (1,)), ("scan", (1,))]
+    assert state.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
+    # A restart replays the same map.
+    restarted = ServerState("default", FleetMap("default"), Store(tmp_path))
+    assert Ingest(restarted, lambda *_: None).replay() == 2
+    assert restarted.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
+
+
+def test_outbox_keeps_messages_until_acknowledged(tmp_path):
+    box = Outbox(tmp_path / "o.db", "default", "r")
+    box.add("scan", 1, "k1", b"one")
+    box.add("poses", 1, "kp", b"graph")
+    assert [(k, i) for k, i, _, _ in box.due(older_than=1e18)] == [("scan", 1), ("poses", 1)]  # scans first
+    box.mark_sent([("scan", 1), ("poses", 1)])
+    assert box.due(older_than=0) == []
+    assert box.acknowledge("scan", (1, 7)) == 1
+    assert box.pending() == 1 and box.acked("scan") == {1, 7}
+    assert [box.next_revision(), box.next_revision()] == [1, 2]
+    box.close()
+    box = Outbox(tmp_path / "o.db", "default", "r")  # what is unacknowledged survives a restart
+    assert box.pending() == 1 and box.next_revision() == 3
+    box.close()
+    with pytest.raises(ValueError, match="belongs to default/r"):
+        Outbox(tmp_path / "o.db", "default", "other")
