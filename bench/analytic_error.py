@@ -220,7 +220,7 @@ def main() -> None:
             noise = errors["MC noise", setup.count].max()
             panels += [panel(errors[name, setup.count], noise, setup, f"{dim}D {geometry}, {name}", 0.05, font)
                        for name, _ in methods]
-        caption = [f"|p - p_MC| for one component seen from the origin; rows: mean distance d",
+        caption = ["|p - p_MC| for one component seen from the origin; rows: mean distance d",
                    f"{args.samples:g} MC samples, N pi = {setup.count:g}, N_p = {DEFAULT_PRIOR}, "
                    f"cell {100 * setup.cell:g} cm, sigma = {setup.sigmas} m"]
         path = args.out / f"analytic_error_{dim}d.png"

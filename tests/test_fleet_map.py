@@ -112,3 +112,12 @@ def test_dimension_mismatch_is_refused(fitted):
     fleet.add_scan(ScanMessage("f", "r1", 0, 0.0, models[0], scans[0].pose))
     with pytest.raises(ValueError, match="bbox"):
         fleet.occupancy(Grid.from_bbox([0, 0, 0], [1, 1, 1], 0.1))
+
+
+def test_a_correction_that_arrives_before_its_scan_is_held(fitted):
+    scans, models = fitted
+    s, m = scans[5], models[5]
+    fleet = FleetMap("f")
+    fleet.apply_poses(PoseGraphUpdate("f", "r1", 3, ((s.index, s.pose),)))
+    fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, 50)))
+    assert np.allclose(fleet.trajectory("r1")[0], s.pose.t)

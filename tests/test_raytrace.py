@@ -8,7 +8,6 @@ from gmm_core.raytrace import trace_rays
 
 def brute_force(grid, origins, ray_origin, ends, weights, is_hit):
     """Test every cell box against every segment (slab test); the end point's cell takes the hit."""
-    d = grid.dim
     centres = grid.cell_centers()
     lo_c, hi_c = centres - grid.resolution / 2, centres + grid.resolution / 2
     hits = np.zeros(grid.n_cells)

@@ -1,6 +1,5 @@
 """`gmmap replay` end to end on the real Intel log and a Kurt3D scan."""
 import numpy as np
-import pytest
 from PIL import Image
 
 from gmm_core import Grid

@@ -34,11 +34,20 @@ def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def world_box(pose: Pose, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box around a node-frame box moved by `pose`."""
-    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(len(lo), -1).T
-    moved = pose.apply(corners)
-    return moved.min(axis=0), moved.max(axis=0)
+def world_boxes(poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray,
+                anchor: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes (n, d) around n node-frame boxes, each moved by anchor ∘ its pose."""
+    if not poses:
+        return np.zeros((0, lo.shape[-1])), np.zeros((0, lo.shape[-1]))
+    R = np.array([p.R for p in poses])
+    t = np.array([p.t for p in poses])
+    if anchor is not None:
+        R, t = anchor.R @ R, t @ anchor.R.T + anchor.t
+    # Moving a box: centre by the pose, half-extent by |R| (the tight bound on every corner).
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    moved = np.einsum("nij,nj->ni", R, centre) + t
+    reach = np.einsum("nij,nj->ni", np.abs(R), half)
+    return moved - reach, moved + reach
 
 
 @dataclass
@@ -54,6 +63,7 @@ class Node:
 @dataclass
 class Robot:
     nodes: dict[int, Node] = field(default_factory=dict)
+    pending: dict[int, Pose] = field(default_factory=dict)  # corrections for nodes not received yet
     anchor: Pose | None = None  # robot map frame -> world
     revision: int = -1
     bytes_received: int = 0
@@ -96,10 +106,11 @@ class FleetMap:
             if msg.node in robot.nodes:
                 return False
             lo, hi = local_reach(msg.model)
-            node = Node(msg.model, msg.pose, scan_seed(msg.robot, msg.node), lo, hi)
+            node = Node(msg.model, msg.pose, scan_seed(msg.robot, msg.node), lo, hi,
+                        corrected=robot.pending.pop(msg.node, None))
             robot.nodes[msg.node] = node
             robot.components += msg.model.n_components
-            self._changed([world_box(robot.world_pose(node), lo, hi)])
+            self._changed(*world_boxes([node.corrected or node.estimate], lo[None], hi[None], robot.anchor))
             return True
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
@@ -114,32 +125,34 @@ class FleetMap:
             robot.last_seen = time.time()
             if update.revision < robot.revision:
                 return False
-            boxes = []
             if update.anchor is not None:
-                # A new anchor moves every node of the robot.
-                boxes += [world_box(robot.world_pose(n), n.local_lo, n.local_hi) for n in robot.nodes.values()]
-                robot.anchor = update.anchor
-                boxes += [world_box(robot.world_pose(n), n.local_lo, n.local_hi) for n in robot.nodes.values()]
+                moved = list(robot.nodes.values())  # a new anchor moves every node of the robot
+                robot.anchor, old_anchor = update.anchor, robot.anchor
+            else:
+                moved, old_anchor = [], robot.anchor
+            old_poses = {id(n): n.corrected or n.estimate for n in moved}
             for node_id, pose in update.poses:
                 node = robot.nodes.get(node_id)
-                if node is None or (node.corrected is not None and np.array_equal(node.corrected.R, pose.R)
-                                    and np.array_equal(node.corrected.t, pose.t)):
-                    continue
-                boxes.append(world_box(robot.world_pose(node), node.local_lo, node.local_hi))
-                node.corrected = pose
-                boxes.append(world_box(robot.world_pose(node), node.local_lo, node.local_hi))
+                if node is None:
+                    robot.pending[node_id] = pose  # its scan is still on the way
+                elif node.corrected is None or not (np.array_equal(node.corrected.R, pose.R)
+                                                    and np.array_equal(node.corrected.t, pose.t)):
+                    old_poses.setdefault(id(node), node.corrected or node.estimate)
+                    node.corrected = pose
+                    moved.append(node)
             robot.revision = update.revision
-            # Poses for nodes not received yet are dropped: the agent resends its updates.
-            self._changed(boxes)
+            moved = list({id(n): n for n in moved}.values())
+            if moved:
+                lo = np.array([n.local_lo for n in moved])
+                hi = np.array([n.local_hi for n in moved])
+                old_lo, old_hi = world_boxes([old_poses[id(n)] for n in moved], lo, hi, old_anchor)
+                new_lo, new_hi = world_boxes([n.corrected or n.estimate for n in moved], lo, hi, robot.anchor)
+                self._changed(np.concatenate([old_lo, new_lo]), np.concatenate([old_hi, new_hi]))
             return True
 
-    def _changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        """Forget the node index and every cached tile that one of `boxes` reaches."""
-        if not boxes:
-            return
+    def _changed(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Forget the node index and every cached tile that one of the boxes (lo, hi) reaches."""
         self._index = None
-        lo = np.array([b[0] for b in boxes])
-        hi = np.array([b[1] for b in boxes])
         for key in [k for k, (g_lo, g_hi, _) in self._tiles.items()
                     if np.any(np.all(lo <= g_hi, axis=1) & np.all(hi >= g_lo, axis=1))]:
             del self._tiles[key]
@@ -148,17 +161,19 @@ class FleetMap:
     def _node_index(self):
         """(keys, world lo, world hi) of every node, sorted by (robot, node)."""
         if self._index is None:
-            keys, los, his = [], [], []
+            d = self.dim or 2
+            keys, los, his = [], [np.zeros((0, d))], [np.zeros((0, d))]
             for name in sorted(self._robots):
                 robot = self._robots[name]
-                for node_id in sorted(robot.nodes):
-                    node = robot.nodes[node_id]
-                    lo, hi = world_box(robot.world_pose(node), node.local_lo, node.local_hi)
-                    keys.append((name, node_id))
-                    los.append(lo)
-                    his.append(hi)
-            d = self.dim or 2
-            self._index = (keys, np.array(los).reshape(-1, d), np.array(his).reshape(-1, d))
+                ids = sorted(robot.nodes)
+                nodes = [robot.nodes[i] for i in ids]
+                keys += [(name, i) for i in ids]
+                lo, hi = world_boxes([n.corrected or n.estimate for n in nodes],
+                                     np.array([n.local_lo for n in nodes]).reshape(-1, d),
+                                     np.array([n.local_hi for n in nodes]).reshape(-1, d), robot.anchor)
+                los.append(lo)
+                his.append(hi)
+            self._index = (keys, np.concatenate(los), np.concatenate(his))
         return self._index
 
     def _node_rays(self, robot: str, node_id: int, node: Node, resolution: float):

@@ -14,7 +14,6 @@ import threading
 from collections import defaultdict
 from collections.abc import Callable
 
-from gmm_core import Pose
 from protocol import Ack, PoseGraphUpdate, ProtocolError, ScanMessage, ack_key, decode, encode, parse_key
 
 from .state import ServerState
@@ -34,9 +33,6 @@ class Ingest:
         self.publish = publish  # (key, payload) -> None: sends an Ack
         self._queue: queue.Queue = queue.Queue(QUEUE_LIMIT)
         self._thread = threading.Thread(target=self._run, name="gmmap-ingest", daemon=True)
-        # Newest pose of every node named by a robot's pose graph: the FleetMap drops poses of
-        # nodes it does not hold yet, so a scan that arrives after its correction gets it here.
-        self._graph: dict[str, tuple[int, dict[int, Pose]]] = {}
         self._dim: int | None = None  # of the first accepted message: a map is 2D or 3D for good
 
     def start(self) -> None:
@@ -58,7 +54,6 @@ class Ingest:
             if isinstance(record.message, ScanMessage):
                 scans += self.state.fleet_map.add_scan(record.message, record.size)
             else:
-                self._remember_graph(record.message)
                 self.state.fleet_map.apply_poses(record.message)
         return scans
 
@@ -123,8 +118,7 @@ class Ingest:
         state.store.put_scans(scans)  # committed: from here on they may be acknowledged
         acks: dict[str, list[int]] = defaultdict(list)
         for message, payload in scans:
-            if state.fleet_map.add_scan(message, len(payload)):
-                self._apply_held_pose(message)
+            state.fleet_map.add_scan(message, len(payload))  # a held correction applies as it lands
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
             acks[message.robot].append(message.node)  # duplicates too: the sender must stop resending
@@ -134,24 +128,10 @@ class Ingest:
     def _ingest_poses(self, update: PoseGraphUpdate, payload: bytes) -> None:
         state = self.state
         if state.store.put_poses(update, payload):
-            self._remember_graph(update)
             state.fleet_map.apply_poses(update)
         state.metrics.accepted.labels("poses").inc()
         state.metrics.bytes_received.labels(update.robot).inc(len(payload))
         self._ack(update.robot, "poses", [update.revision])  # an older revision is acked as superseded
-
-    def _remember_graph(self, update: PoseGraphUpdate) -> None:
-        revision, poses = self._graph.get(update.robot, (-1, {}))
-        if update.revision >= revision:
-            poses.update(update.poses)
-            self._graph[update.robot] = (update.revision, poses)
-
-    def _apply_held_pose(self, message: ScanMessage) -> None:
-        revision, poses = self._graph.get(message.robot, (-1, {}))
-        pose = poses.get(message.node)
-        if pose is not None:
-            self.state.fleet_map.apply_poses(
-                PoseGraphUpdate(message.fleet, message.robot, revision, ((message.node, pose),)))
 
     def _ack(self, robot: str, kind: str, ids: list[int]) -> None:
         ack = Ack(self.state.fleet, robot, kind, tuple(ids))
