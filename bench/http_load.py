@@ -1,0 +1,112 @@
+"""Tile latency of a real `gmmap server` under 32 concurrent HTTP clients (issue 5).
+
+A server process is filled by a real agent replaying the Intel log (910 scans), then N client
+threads in this process fetch 256 x 256 PNG tiles of the viewer's tiling (0.05, 0.1 and 0.2 m)
+at random for a fixed time. Phase "cold" starts with an empty tile cache; phase "warm" repeats.
+
+    .venv/bin/python bench/http_load.py [--clients 32] [--seconds 15]
+"""
+from __future__ import annotations
+
+import argparse
+import random
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
+GMMAP = [sys.executable, "-m", "services.cli"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_http(url: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            urllib.request.urlopen(url, timeout=1).read()
+            return
+        except OSError:
+            time.sleep(0.2)
+    raise RuntimeError(f"{url} did not answer")
+
+
+def tile_urls(base: str) -> list[str]:
+    """The viewer's fixed tiling: 256-cell tiles over the Intel map at three resolutions."""
+    urls = []
+    for res in (0.05, 0.1, 0.2):
+        size = 256 * res
+        for ix in range(int(np.floor(-21 / size)), int(np.ceil(26 / size))):
+            for iy in range(int(np.floor(-31 / size)), int(np.ceil(14 / size))):
+                x, y = ix * size, iy * size
+                urls.append(f"{base}/v1/occupancy?bbox={x:.4f},{y:.4f},{x + size:.4f},{y + size:.4f}"
+                            f"&resolution={res}&format=png")
+    return urls
+
+
+def load(urls: list[str], clients: int, seconds: float) -> tuple[list[float], int]:
+    latencies, errors, lock = [], [0], threading.Lock()
+    stop = time.monotonic() + seconds
+
+    def client(seed: int):
+        rng = random.Random(seed)
+        while time.monotonic() < stop:
+            t0 = time.perf_counter()
+            try:
+                urllib.request.urlopen(rng.choice(urls), timeout=30).read()
+                with lock:
+                    latencies.append(time.perf_counter() - t0)
+            except OSError:
+                with lock:
+                    errors[0] += 1
+
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return latencies, errors[0]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--clients", type=int, default=32)
+    parser.add_argument("--seconds", type=float, default=15.0)
+    args = parser.parse_args()
+    zport, hport = free_port(), free_port()
+    base = f"http://127.0.0.1:{hport}"
+    with tempfile.TemporaryDirectory() as data:
+        server = subprocess.Popen(GMMAP + ["server", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
+                                           "--http", f"127.0.0.1:{hport}", "--data-dir", data], cwd=ROOT)
+        try:
+            wait_http(base + "/healthz")
+            subprocess.run(GMMAP + ["agent", "--robot", "intel", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
+                                    "--source", f"carmen:{LOG}", "--outbox", f"{data}/outbox.db"],
+                           cwd=ROOT, check=True, stderr=subprocess.DEVNULL)
+            urls = tile_urls(base)
+            print(f"{len(urls)} distinct tiles, {args.clients} clients, {args.seconds:.0f} s per phase")
+            print("| phase | requests | errors | req/s | p50 ms | p90 ms | p99 ms |\n|---|---|---|---|---|---|---|")
+            for phase in ("cold", "warm"):
+                lat, errors = load(urls, args.clients, args.seconds)
+                ms = 1000 * np.percentile(lat, [50, 90, 99])
+                print(f"| {phase} | {len(lat)} | {errors} | {len(lat) / args.seconds:.0f} | "
+                      f"{ms[0]:.1f} | {ms[1]:.1f} | {ms[2]:.1f} |")
+        finally:
+            server.terminate()
+            server.wait(10)
+
+
+if __name__ == "__main__":
+    main()
