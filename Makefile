@@ -13,10 +13,11 @@ $(STAMP): pyproject.toml
 
 test: $(STAMP)
 	@command -v chromium >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || echo "could not install chromium: the viewer screenshot test will be skipped"
+	@command -v docker-compose >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq docker-compose >/dev/null) || echo "could not install docker-compose: the compose file validation test will be skipped"
 	$(VENV)/bin/pytest -q
 
 demo: $(STAMP)
-	$(VENV)/bin/gmmap replay ../shared/data/carmen/intel-corrected.log.gz --resolution 0.05 --out intel.npz --png intel.png
+	$(VENV)/bin/gmmap demo
 
 bench: $(STAMP)
 	$(VENV)/bin/pip install --quiet -e '.[bench]'

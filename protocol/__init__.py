@@ -3,11 +3,11 @@ from protocol.codec import ENCODINGS, MAX_BYTES, MAX_COMPONENTS, VERSION, decode
 from protocol.errors import ProtocolError
 from protocol.keys import (ack_key, check_id, occupancy_key, occupancy_wildcard, parse_key, poses_key,
                            poses_wildcard, scan_key, scan_wildcard)
-from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, ScanMessage
+from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
 
 __all__ = [
     "ENCODINGS", "MAX_BYTES", "MAX_COMPONENTS", "VERSION", "decode", "encode", "ProtocolError",
     "ack_key", "check_id", "occupancy_key", "occupancy_wildcard", "parse_key", "poses_key",
     "poses_wildcard", "scan_key", "scan_wildcard",
-    "Ack", "MapQuery", "MapReply", "Message", "PoseGraphUpdate", "ScanMessage",
+    "Ack", "MapQuery", "MapReply", "Message", "PoseGraphUpdate", "Rejection", "ScanMessage",
 ]

@@ -15,7 +15,7 @@ from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.errors import ProtocolError
 from protocol.keys import MAX_NODE, check_id
-from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, ScanMessage
+from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
 from protocol.quantize import dequantize, quantize, record_bits, stream_bytes
 from protocol.wire import Fields
 
@@ -29,7 +29,7 @@ QUATERNION_NORM_TOLERANCE = 1e-3
 SYMMETRY_TOLERANCE = 1e-6  # relative to the component's largest covariance entry
 UNCHECKED = "unchecked error"  # prefix of errors caught by the safety net, not a named check
 
-TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5}
+TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5, Rejection: 6}
 
 
 def encode(message: Message, encoding: str = "q") -> bytes:
@@ -299,6 +299,16 @@ def _decode_ack(f: Fields, max_components: int) -> Ack:
     return Ack(fleet, robot, f.get("kind", "kind"), tuple(_counts(f.array("ids", "ids", "<u8"), "ids")))
 
 
+def _encode_rejection(message: Rejection, encoding: str) -> dict:
+    return {**_encode_ack(Ack(message.fleet, message.robot, message.kind, message.ids), encoding),
+            "reason": message.reason, "detail": message.detail}
+
+
+def _decode_rejection(f: Fields, max_components: int) -> Rejection:
+    ack = _decode_ack(f, max_components)
+    return Rejection(ack.fleet, ack.robot, ack.kind, ack.ids, f.get("reason", "reason"), f.get("detail", "detail"))
+
+
 def _encode_map_query(message: MapQuery, encoding: str) -> dict:
     return {"f": message.fleet, "d": message.dim, "lo": message.lo.astype("<f8").tobytes(),
             "hi": message.hi.astype("<f8").tobytes(), "res": message.resolution,
@@ -334,5 +344,7 @@ def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
                     f.float("res", "resolution"), grid)
 
 
-_ENCODERS = {1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply}
-_DECODERS = {1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply}
+_ENCODERS = {1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply,
+             6: _encode_rejection}
+_DECODERS = {1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply,
+             6: _decode_rejection}

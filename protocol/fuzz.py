@@ -5,6 +5,7 @@ Nothing here runs in a service; it makes inputs that a weak radio or a hostile p
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -13,7 +14,7 @@ from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.codec import encode
-from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, ScanMessage
+from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, Rejection, ScanMessage
 
 
 def random_rotations(rng: np.random.Generator, count: int, dim: int) -> np.ndarray:
@@ -62,6 +63,7 @@ def seed_messages(rng: np.random.Generator) -> list[bytes]:
         messages.append(encode(MapQuery("fleet-a", np.zeros(dim), np.ones(dim), 0.1, ("robot_1",))))
         messages.append(encode(MapReply("fleet-a", np.zeros(dim), 0.5, rng.uniform(size=(2,) * dim))))
     messages.append(encode(Ack("fleet-a", "robot_1", "scan", (1, 2, 3))))
+    messages.append(encode(Rejection("fleet-a", "robot_1", "scan", (4, 5), "quota", "512 MiB used")))
     return messages
 
 
@@ -96,6 +98,39 @@ def _structural(rng: np.random.Generator, data: bytes) -> bytes:
     elif isinstance(parent, dict):
         parent["zz" if rng.random() < 0.5 else key.upper() if isinstance(key, str) else "k"] = value
     return msgpack.packb(root, use_bin_type=True)
+
+
+def keyed_message(rng: np.random.Generator, seeds: list[bytes], fleet: str = "fleet-a") -> tuple[str, bytes]:
+    """(key, payload) for the ingest of a map server of `fleet`: a seed message (mutated 9 times
+    in 10) on the key its content names when it decodes, so that it reaches the checks behind
+    the decoder, now and then on a key of another robot or node; otherwise on any scan or pose
+    key. Every key matches the server's subscriptions, so each message arrives and is counted."""
+    from protocol.codec import decode  # here, not at the top: codec imports nothing of this module
+    from protocol.errors import ProtocolError
+
+    data = seeds[int(rng.integers(len(seeds)))]
+    if rng.random() < 0.9:
+        data = mutate(rng, data)[1]
+    try:
+        message = decode(data)
+    except ProtocolError:
+        message = None
+    if isinstance(message, ScanMessage) and rng.random() < 0.5:  # new (robot, node): stored, not a resend
+        message = replace(message, robot=f"robot_{rng.integers(1, 5)}", node=int(rng.integers(10**6)))
+        data = encode(message)
+    robot, node = getattr(message, "robot", "robot_1"), getattr(message, "node", int(rng.integers(1000)))
+    roll = rng.random()
+    if roll < 0.05:
+        robot = "robot_2"  # not the message's robot
+    elif roll < 0.08:
+        node += 1  # not the message's node
+    elif roll < 0.1:
+        return f"gmmap/{fleet}/{robot}/scan/0{node}", data  # not canonical
+    elif roll < 0.12:
+        return f"gmmap/{fleet}/robot.{robot}/poses", data  # not an id
+    if isinstance(message, PoseGraphUpdate) or (message is None and rng.random() < 0.3):
+        return f"gmmap/{fleet}/{robot}/poses", data
+    return f"gmmap/{fleet}/{robot}/scan/{node}", data
 
 
 def mutate(rng: np.random.Generator, data: bytes) -> tuple[str, bytes]:

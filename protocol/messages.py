@@ -115,6 +115,32 @@ class Ack:
         object.__setattr__(self, "ids", ids)
 
 
+@dataclass(frozen=True)
+class Rejection:
+    """The server refuses these scans (kind "scan", ids = node ids) or pose-graph revisions (kind
+    "poses", ids = revisions) for good: resending them gets the same answer. `reason` is a code
+    (for now only "quota": the robot's storage quota on the server is used up), `detail` says it
+    in words for the robot's log. Robots stop resending them and report the reason.
+
+    A message of its own (not a flag on Ack), so a decoder that predates it ignores it as an
+    unknown type and keeps resending: it can never take a refusal for an acknowledgement.
+    """
+
+    fleet: str
+    robot: str
+    kind: Literal["scan", "poses"]
+    ids: tuple[int, ...]
+    reason: str
+    detail: str = ""
+
+    def __post_init__(self):
+        Ack(self.fleet, self.robot, self.kind, self.ids)  # the same rules as an Ack
+        object.__setattr__(self, "ids", tuple(self.ids))
+        check_id(self.reason, "reason")
+        if not isinstance(self.detail, str) or len(self.detail) > 1000:
+            raise ProtocolError("detail", "must be a string of at most 1000 characters")
+
+
 @dataclass(frozen=True, eq=False)
 class MapQuery:
     """Occupancy of the axis-aligned box [lo, hi] in the fleet's world frame, on a grid of
@@ -183,4 +209,4 @@ class MapReply:
         return self.origin.shape[0]
 
 
-Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply
+Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply | Rejection

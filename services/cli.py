@@ -8,6 +8,9 @@ import time
 import numpy as np
 
 
+SIM_WORLDS = ["mine", "office", "warehouse"]  # services.sim.worlds.WORLDS, without importing numba here
+
+
 def _floats(text: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",")]
@@ -118,7 +121,7 @@ def cmd_server(args) -> int:
     return run_server(ServerOptions(
         fleet=args.fleet, zenoh_listen=tuple(e for e in args.zenoh_listen or () if e), zenoh_connect=tuple(args.zenoh_connect or ()),
         zenoh_config=args.zenoh_config, http=args.http or None, data_dir=args.data_dir,
-        synchronous=args.synchronous))
+        synchronous=args.synchronous, robot_quota_mb=args.robot_quota_mb))
 
 
 def cmd_router(args) -> int:
@@ -136,8 +139,22 @@ def cmd_agent(args) -> int:
         robot=args.robot, source=args.source, fleet=args.fleet, zenoh_connect=tuple(args.zenoh_connect),
         zenoh_config=args.zenoh_config, corrections=args.corrections, scans=args.scans, rate=args.rate,
         outbox=args.outbox, encoding=args.encoding, update_every=args.update_every,
-        odometry_only=args.odometry_only, max_range=args.max_range,
+        odometry_only=args.odometry_only, max_range=args.max_range, component_size=args.component_size,
         resend_s=args.resend, timeout=args.timeout))
+
+
+def cmd_sim(args) -> int:
+    from services.sim.run import SimOptions, run_sim
+
+    return run_sim(SimOptions(robots=args.robots, world=args.world, duration=args.duration, rate=args.rate,
+                              seed=args.seed, http_clients=args.http_clients, report=args.report,
+                              component_size=args.component_size))
+
+
+def cmd_demo(args) -> int:
+    from services.sim.demo import run_demo
+
+    return run_demo(args.http, args.duration)
 
 
 def _fleet_id(text: str) -> str:
@@ -196,6 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", default="./gmmap-data")
     p.add_argument("--synchronous", choices=["normal", "full"], default="normal",
                    help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
+    p.add_argument("--robot-quota-mb", type=float, default=512.0, metavar="MIB",
+                   help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 
@@ -211,23 +230,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fleet", type=_fleet_id, default="default")
     p.add_argument("--zenoh-connect", action="append", metavar="EP", help="default tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE.json5")
-    p.add_argument("--source", required=True, metavar="carmen:PATH|kurt3d:DIR|xyz:PATH")
+    p.add_argument("--source", required=True, metavar="carmen:PATH|kurt3d:DIR|xyz:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
+                   help="a log, or robot INDEX of a simulated fleet (needs --scans A:B)")
     p.add_argument("--corrections", metavar="PATH",
                    help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates")
     p.add_argument("--scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
     p.add_argument("--rate", type=float, default=0.0, help="scans per second (default: as fast as fitted)")
     p.add_argument("--outbox", metavar="PATH", help="durable outbox (default ./gmmap-data/outbox-<robot>.db)")
     p.add_argument("--encoding", choices=["q", "f32"], default="q")
-    p.add_argument("--update-every", type=int, default=100, metavar="N",
-                   help="scans between pose-graph updates (0: only at the end)")
+    p.add_argument("--update-every", type=int, default=None, metavar="N",
+                   help="scans between pose-graph updates (0: only at the end; default 100, "
+                        "or a sim source's loop-closure period of 10 s)")
     p.add_argument("--odometry-only", action="store_true",
                    help="with --corrections: publish the matched scans but no pose-graph updates")
     p.add_argument("--max-range", type=float, default=10.0)
+    p.add_argument("--component-size", type=float, default=None, metavar="M",
+                   help="at most one component per occupied cell of this size (default: none in 2D, 1.0 m in 3D)")
     p.add_argument("--resend", type=float, default=1.0, metavar="S", help="resend what is unacknowledged after S s")
     p.add_argument("--timeout", type=float, default=120.0, metavar="S",
                    help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_agent)
+
+    p = sub.add_parser("sim", help="a simulated fleet over real Zenoh: bytes, map AUROC vs ground truth, latencies")
+    p.add_argument("--robots", type=int, default=3, help="one agent process each")
+    p.add_argument("--world", choices=SIM_WORLDS, default="office",
+                   help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds each robot drives and publishes")
+    p.add_argument("--rate", type=float, default=5.0, help="scans per second per robot")
+    p.add_argument("--seed", type=int, default=0, help="world, paths, odometry and sensor noise")
+    p.add_argument("--http-clients", type=int, default=0, metavar="N",
+                   help="concurrent HTTP clients fetching map tiles meanwhile")
+    p.add_argument("--report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
+    p.add_argument("--component-size", type=float, default=None, metavar="M",
+                   help="the agents' fit: at most one component per occupied cell of this size "
+                        "(default: none in 2D, 1.0 m in 3D)")
+    p.set_defaults(run=cmd_sim)
+
+    p = sub.add_parser("demo", help="a map server and three simulated robots in the office; the viewer shows the map grow")
+    p.add_argument("--duration", type=float, default=0.0,
+                   help="seconds the robots drive, then everything stops; 0: until Ctrl-C")
+    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="where the viewer is served")
+    p.set_defaults(run=cmd_demo)
     return parser
 
 

@@ -419,3 +419,17 @@ def test_fuzz_sees_only_protocol_errors():
         valid += 1
         decode(encode(message))  # whatever decodes can be forwarded
     assert 0 < valid < 4000
+
+
+def test_rejection_round_trip_and_never_mistaken_for_an_ack():
+    from protocol import Rejection
+
+    refusal = Rejection("f", "r", "scan", (3, 4), "quota", "robot r holds 512 MiB")
+    assert decode(encode(refusal)) == refusal
+    with pytest.raises(ProtocolError, match="type"):  # a receiver that waits for Acks drops it
+        decode(encode(refusal), expect=Ack)
+    for bad, field in ((dict(reason="no quota"), "reason"), (dict(detail="x" * 1001), "detail"),
+                       (dict(kind="map"), "kind"), (dict(ids=(-1,)), "ids")):
+        args = dict(fleet="f", robot="r", kind="scan", ids=(1,), reason="quota", detail="") | bad
+        with pytest.raises(ProtocolError, match=field):
+            Rejection(**args)

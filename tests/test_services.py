@@ -194,8 +194,10 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
     _, odometry_map = served_map(session, grid)
 
     # Phase 2: the same robots again, now with their back end: every scan is a resend (stored
-    # once), then the corrected poses every 100 scans and at the end.
-    agents = [procs.agent(r, zport, data_dir, "--timeout", "60") for r in HALVES]
+    # once), then the corrected poses every 100 scans and at the end. New outboxes: with its old
+    # one, an agent would resume and skip the scans already acknowledged.
+    agents = [procs.agent(r, zport, data_dir, "--timeout", "60", "--outbox", str(tmp_path / f"outbox-{r}-2.db"))
+              for r in HALVES]
     for a in agents:
         assert procs.finish(a, 90) == 0, procs.log(a)
     raw_reply, corrected_map = served_map(session, grid)

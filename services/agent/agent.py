@@ -12,18 +12,19 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import zenoh
 
 from gmm_core import fit_scan
-from protocol import (Ack, PoseGraphUpdate, ProtocolError, ScanMessage, ack_key, decode, encode, poses_key,
-                      scan_key)
+from protocol import (Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode,
+                      poses_key, scan_key)
 from services.zenoh_config import zenoh_config
 
 from .outbox import Outbox
-from .sources import Node, fit_config, load_nodes
+from .sources import Node, SimulatedNodes, default_update_every, fit_config, load_nodes
 
 log = logging.getLogger("gmmap.agent")
 
@@ -40,9 +41,10 @@ class AgentOptions:
     rate: float = 0.0  # scans per second; 0: as fast as they are fitted
     outbox: str | None = None  # default ./gmmap-data/outbox-<robot>.db
     encoding: str = "q"
-    update_every: int = 100  # scans between pose-graph updates (with --corrections)
+    update_every: int | None = None  # scans between pose-graph updates; None: the source's default
     odometry_only: bool = False  # corrections select the scans, but no pose-graph updates are sent
     max_range: float = 10.0
+    component_size: float | None = None  # m; None: none in 2D, 1.0 in 3D
     resend_s: float = 1.0
     timeout: float = 120.0  # seconds to wait for the last Acks once everything is published
 
@@ -56,6 +58,9 @@ class Agent:
         self._send_lock = threading.Lock()  # one publisher at a time keeps scans before updates
         self._session_lock = threading.Lock()  # exactly one of _connect and close closes the session
         self._changed = threading.Condition()
+        self.refused: Rejection | None = None  # the server's last refusal for good, if any
+        self.unsent = 0  # scans not published because of a refusal
+        self.resumed = 0  # scans a previous run of this outbox got through (or left held): not fitted again
         self._stop = threading.Event()
         self._connector = threading.Thread(target=self._connect, args=(config,), name="gmmap-connect", daemon=True)
         self._resender = threading.Thread(target=self._resend_loop, name="gmmap-resend", daemon=True)
@@ -116,26 +121,51 @@ class Agent:
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
-            ack = decode(sample.payload.to_bytes(), expect=Ack)
+            answer = decode(sample.payload.to_bytes())
+            if not isinstance(answer, (Ack, Rejection)):
+                raise ProtocolError("type", f"expected Ack or Rejection, got {type(answer).__name__}")
         except ProtocolError as error:
             log.warning("ignored a malformed ack: %s", error)
             return
-        if ack.robot == self.options.robot and ack.fleet == self.options.fleet:
-            self.outbox.acknowledge(ack.kind, ack.ids)
-            with self._changed:
-                self._changed.notify_all()
+        if answer.robot != self.options.robot or answer.fleet != self.options.fleet:
+            return
+        if isinstance(answer, Rejection):  # refused for good: stop resending, report at the end
+            if self.outbox.reject(answer.kind, answer.ids, answer.reason, answer.detail):
+                log.error("the server refused %d message(s) of kind %s: %s: %s", len(answer.ids), answer.kind,
+                          answer.reason, answer.detail)
+            self.refused = answer
+        else:
+            self.outbox.acknowledge(answer.kind, answer.ids)
+        with self._changed:
+            self._changed.notify_all()
 
     # -- the run -------------------------------------------------------------------------------
-    def publish_all(self, nodes: list[Node], progress=None) -> int:
+    def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
         """Fit and send every node, with pose-graph updates; returns the updates sent."""
         o = self.options
-        config = fit_config(nodes[0].scan.pose.dim, o.max_range) if nodes else None
+        config = None
         corrected = []
         updates = 0
+        # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender.
+        done = self.outbox.acked("scan") | self.outbox.held("scan")
+        self.resumed = 0
+        sent = 0
         started = time.monotonic()
         for count, node in enumerate(nodes, 1):
+            if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
+                self.unsent += 1
+                continue
+            if node.node in done:
+                self.resumed += 1
+                if node.corrected is not None:
+                    corrected.append((node.node, node.corrected))
+                if progress is not None:
+                    progress(1)
+                continue
             if o.rate > 0:
-                time.sleep(max(0.0, started + (count - 1) / o.rate - time.monotonic()))
+                time.sleep(max(0.0, started + sent / o.rate - time.monotonic()))
+            sent += 1
+            config = config or fit_config(node.scan.pose.dim, o.max_range, o.component_size)
             model = fit_scan(node.scan.hits, node.scan.no_return, config)
             message = ScanMessage(o.fleet, o.robot, node.node, node.scan.stamp, model, node.estimate)
             self.send("scan", node.node, scan_key(o.fleet, o.robot, node.node), encode(message, o.encoding))
@@ -182,7 +212,9 @@ class Agent:
 
 def run_agent(o: AgentOptions) -> int:
     started = time.perf_counter()
-    nodes = load_nodes(o.source, o.corrections, o.scans)
+    if o.update_every is None:
+        o = replace(o, update_every=default_update_every(o.source, o.rate))
+    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every)
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
     outbox = Outbox(o.outbox or Path("gmmap-data") / f"outbox-{o.robot}.db", o.fleet, o.robot)
@@ -200,7 +232,15 @@ def run_agent(o: AgentOptions) -> int:
                   f"(is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)",
                   file=sys.stderr, flush=True)
             return 1
-        print(f"gmmap agent {o.robot}: {len(nodes)} scans and {updates} pose-graph updates acknowledged; "
+        refused = outbox.rejected()
+        if refused:
+            print(f"gmmap agent {o.robot}: the server refused {len(refused)} messages for good "
+                  f"({refused[-1][2]}: {refused[-1][3]}); they are not stored and not resent "
+                  f"(listed in table `rejected` of {outbox.path}); {agent.unsent} scans were not published",
+                  file=sys.stderr, flush=True)
+            return 3
+        resumed = f" ({agent.resumed} of them from a previous run: resumed)" if agent.resumed else ""
+        print(f"gmmap agent {o.robot}: {len(nodes)} scans{resumed} and {updates} pose-graph updates acknowledged; "
               f"published after {published - started:.1f} s, all acknowledged after "
               f"{time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
         return 0

@@ -2,8 +2,10 @@
 
 A message is written (and committed) before it is first published and deleted only when its
 Ack arrives, so a crash of the agent, of the server or of the link loses nothing: whatever
-is still here is resent. `acked` keeps a log of what the server confirmed (audits, tests),
-and `meta` the next pose-graph revision, which must keep increasing across restarts.
+is still here is resent. `acked` keeps a log of what the server confirmed (audits, tests, and
+what a restarted agent skips), `rejected` what the server refused for good (a Rejection: not
+resent, reported), and `meta` the next pose-graph revision, which must keep increasing across
+restarts.
 """
 from __future__ import annotations
 
@@ -19,6 +21,10 @@ CREATE TABLE IF NOT EXISTS outbox (
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS acked (
     kind TEXT NOT NULL, id INTEGER NOT NULL, at REAL NOT NULL, PRIMARY KEY (kind, id)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS rejected (
+    kind TEXT NOT NULL, id INTEGER NOT NULL, reason TEXT NOT NULL, detail TEXT NOT NULL, at REAL NOT NULL,
+    PRIMARY KEY (kind, id)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
@@ -55,6 +61,7 @@ class Outbox:
         """Keep a message (replacing one of the same kind and id); sent time 0: due at once."""
         with self._lock, self._db:
             self._db.execute("INSERT OR REPLACE INTO outbox VALUES (?, ?, ?, ?, 0, 0)", (kind, ident, key, raw))
+            self._db.execute("DELETE FROM rejected WHERE kind = ? AND id = ?", (kind, ident))  # a new attempt
 
     def mark_sent(self, items: list[tuple[str, int]]) -> None:
         with self._lock, self._db:
@@ -68,7 +75,28 @@ class Outbox:
             removed = sum(self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ?", (kind, i)).rowcount
                           for i in ids)
             self._db.executemany("INSERT OR IGNORE INTO acked VALUES (?, ?, ?)", [(kind, i, now) for i in ids])
+            self._db.executemany("DELETE FROM rejected WHERE kind = ? AND id = ?", [(kind, i) for i in ids])
         return removed
+
+    def reject(self, kind: str, ids: tuple[int, ...], reason: str, detail: str) -> int:
+        """Drop messages the server refused for good, keeping why; returns how many were still held."""
+        now = time.time()
+        with self._lock, self._db:
+            removed = sum(self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ?", (kind, i)).rowcount
+                          for i in ids)
+            self._db.executemany("INSERT OR REPLACE INTO rejected VALUES (?, ?, ?, ?, ?)",
+                                 [(kind, i, reason, detail, now) for i in ids])
+        return removed
+
+    def rejected(self) -> list[tuple[str, int, str, str]]:
+        """(kind, id, reason, detail) of every message refused and not accepted since."""
+        with self._lock:
+            return self._db.execute("SELECT kind, id, reason, detail FROM rejected ORDER BY kind, id").fetchall()
+
+    def held(self, kind: str = "scan") -> set[int]:
+        """Ids of the messages of `kind` still waiting for an answer."""
+        with self._lock:
+            return {i for (i,) in self._db.execute("SELECT id FROM outbox WHERE kind = ?", (kind,))}
 
     def due(self, older_than: float) -> list[tuple[str, int, str, bytes]]:
         """Messages not sent since `older_than` (epoch seconds), oldest first."""

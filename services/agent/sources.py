@@ -5,13 +5,23 @@ log (identical beams, services.datasets.match_by_timestamp): the node id is the 
 that matched sequence, the published pose is the raw log's odometry, and the corrected pose is
 what the agent's SLAM back end later sends in pose-graph updates. Without corrections the node
 id is the scan's index in the log and the log's pose is final.
+
+`--source sim:WORLD:INDEX:ROBOTS[:SEED] --scans A:B` is robot INDEX of a simulated fleet
+(services.sim.fleet): scans A to B of a run of B scans, simulated as they are published, with
+the robot's own drifting estimate as the published pose and the true pose as the corrected
+one; the agent's pose-graph updates then play the loop closures, every `update_every` scans.
 """
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from gmm_core import FitConfig, Pose
 from services.datasets import RangeScan, match_by_timestamp, read_scans
+from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval
+
+LOG_UPDATE_EVERY = 100  # scans between pose-graph updates of a log with --corrections
 
 SOURCE_FORMATS = ("carmen", "kurt3d", "xyz")
 
@@ -45,12 +55,60 @@ def parse_slice(text: str | None) -> slice:
         raise ValueError(f"--scans must be A:B with integers, got {text!r}") from None
 
 
-def fit_config(dim: int, max_range: float) -> FitConfig:
-    # Dense 3D scans: at most one component per cubic metre cell of surface (as `gmmap replay`).
-    return FitConfig(max_range=max_range, component_size=1.0 if dim == 3 else None)
+def fit_config(dim: int, max_range: float, component_size: float | None = None) -> FitConfig:
+    # Dense 3D scans: by default at most one component per cubic metre cell of surface (as `gmmap replay`).
+    if component_size is None and dim == 3:
+        component_size = 1.0
+    return FitConfig(max_range=max_range, component_size=component_size)
 
 
-def load_nodes(source: str, corrections: str | None = None, scans: str | None = None) -> list[Node]:
+def is_simulated(source: str) -> bool:
+    return source.startswith("sim:")
+
+
+def default_update_every(source: str, rate: float) -> int:
+    """Scans between pose-graph updates: the simulated loop-closure period, or 100 for a log."""
+    return correction_interval(rate or DEFAULT_RATE) if is_simulated(source) else LOG_UPDATE_EVERY
+
+
+@dataclass(frozen=True)
+class SimulatedNodes:
+    """A simulated robot's nodes, each scan simulated when the agent gets to it."""
+
+    fleet: SimulatedFleet
+    index: int
+    span: range
+    update_every: int  # the robot's estimate restarts from the true pose after each update
+
+    def __len__(self) -> int:
+        return len(self.span)
+
+    def __iter__(self) -> Iterator[Node]:
+        scans = self.fleet.scans(self.index, self.update_every)
+        for scan in itertools.islice(scans, self.span.start, self.span.stop):
+            yield Node(scan.index, scan, scan.odom_pose, scan.pose)
+
+
+def simulated_nodes(source: str, scans: str | None, rate: float, update_every: int) -> SimulatedNodes:
+    sim = SimSource.parse(source)
+    span = parse_slice(scans)
+    if span.stop is None or not 0 <= (span.start or 0) < span.stop:
+        raise ValueError("--scans: a sim source needs A:B with 0 <= A < B, the scans of its run to publish "
+                         "(0:300 is 60 s at 5 Hz)")
+    span = range(span.start or 0, span.stop)
+    fleet = SimulatedFleet(sim.world, sim.robots, span.stop, rate or DEFAULT_RATE, sim.seed)
+    return SimulatedNodes(fleet, sim.index, span, update_every)
+
+
+def load_nodes(source: str, corrections: str | None = None, scans: str | None = None, *, rate: float = 0.0,
+               update_every: int | None = None) -> list[Node] | SimulatedNodes:
+    """The nodes of a log (a list), or of a simulated robot (simulated as iterated)."""
+    if is_simulated(source):
+        if corrections is not None:
+            raise ValueError("--corrections: a sim source brings its own (the true poses)")
+        if update_every is None:
+            update_every = default_update_every(source, rate)
+        return simulated_nodes(source, scans, rate, update_every)
     fmt, path = parse_source(source)
     if corrections is None:
         nodes = [Node(s.index, s, s.pose, None) for s in read_scans(path, fmt)]

@@ -14,16 +14,19 @@ from pathlib import Path
 
 import numpy as np
 from fastapi import FastAPI, Query, Request
+from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse, Response
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from protocol import MapReply, encode
 from services.render import occupancy_png
 
 from . import params
+from .limits import MAX_BODY, BodyLimit
 from .params import ApiError
 from .points import BLOCK, MAX_GRIDS, plan, point_probabilities
 
@@ -40,14 +43,44 @@ class Format(str, Enum):
 MEDIA_TYPES = {Format.npy: "application/x-npy", Format.png: "image/png", Format.msgpack: "application/msgpack"}
 
 
+# Schema constraints are published for clients and API fuzzers; the checks themselves are in
+# `params`, so every rejection keeps one wording. Constraints between values (lo < hi, the cell
+# and point limits, one dimension per request) cannot be said in OpenAPI and are only in `params`.
+def _range(lo: float, hi: float) -> dict:
+    return {"json_schema_extra": {"minimum": lo, "maximum": hi}}
+
+
 class PointsBody(BaseModel):
-    points: list[list[float]]
-    resolution: float
-    robots: list[str] | None = None
+    model_config = ConfigDict(strict=True)  # JSON numbers only: no true for 1.0, no "0.1" for 0.1
+
+    points: list[list[float]] = Field(json_schema_extra={
+        "minItems": 1, "maxItems": params.MAX_POINTS,
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 3}})
+    resolution: float = Field(**_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION))
+    robots: list[str] | None = Field(None, json_schema_extra={"items": {"pattern": params.ID_PATTERN}})
 
 
-def error(status: int, field: str | None, message: str) -> JSONResponse:
-    return JSONResponse({"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status)
+class ErrorBody(BaseModel):
+    """Every error reply: what is wrong, and the parameter at fault (null when none is)."""
+
+    detail: str
+    field: str | None
+
+
+ERRORS = {status: {"model": ErrorBody, "description": text} for status, text in (
+    (400, "The body is not valid JSON"), (404, "No such robot or path"), (413, f"Request body over {MAX_BODY:,} bytes"),
+    (422, "A parameter is missing, malformed or over a limit; `field` names it"))}
+
+
+def allowed_methods(app: FastAPI, scope) -> set[str]:
+    """Every method that some route serves at the request's path."""
+    return {m for route in app.router.routes if route.matches(scope)[0] is not Match.NONE
+            for m in getattr(route, "methods", None) or ()}
+
+
+def error(status: int, field: str | None, message: str, headers=None) -> JSONResponse:
+    return JSONResponse({"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status,
+                        headers=headers)
 
 
 def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
@@ -58,7 +91,8 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     app = FastAPI(title="gmmap map server", version="1", description=(
         "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
         "Grids follow DESIGN.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
-        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."))
+        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."), responses=ERRORS)
+    app.add_middleware(BodyLimit, max_bytes=MAX_BODY)
     if cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
                            expose_headers=GRID_HEADERS)
@@ -79,7 +113,10 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
-        return error(exc.status_code, None, str(exc.detail))
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # Starlette lists the first route's methods; GET and POST share a path
+            headers = {"Allow": ", ".join(sorted(allowed_methods(app, request.scope)))}
+        return error(exc.status_code, None, str(exc.detail), headers)
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception):
@@ -97,11 +134,14 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
                               "description": "npy: float32 (ny, nx) or (nz, ny, nx); png: top-down grey image, "
                                              "north up; msgpack: a protocol MapReply"}})
     def occupancy(
-        bbox: str = Query(..., description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres"),
+        bbox: str = Query(..., description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres",
+                          json_schema_extra={"pattern": params.BBOX_PATTERN}),
         resolution: float = Query(..., description=f"cell size in metres, {params.MIN_RESOLUTION} to "
-                                                    f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells"),
+                                                    f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells",
+                                  **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION)),
         format: Format = Query(Format.npy, description="npy, png or msgpack"),
-        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent"),
+        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent",
+                                   json_schema_extra={"pattern": params.ROBOTS_PATTERN}),
     ) -> Response:
         start = time.perf_counter()
         res = params.resolution(resolution)
@@ -140,10 +180,14 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
 
     @app.get("/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point")
     def occupancy_points(
-        xy: str | None = Query(None, description="x1,y1,x2,y2,... (2D maps)"),
-        xyz: str | None = Query(None, description="x1,y1,z1,... (3D maps)"),
-        resolution: float = Query(..., description="cell size in metres"),
-        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent"),
+        xy: str | None = Query(None, description="x1,y1,x2,y2,... (2D maps)",
+                               json_schema_extra={"pattern": params.NUMBERS_PATTERN}),
+        xyz: str | None = Query(None, description="x1,y1,z1,... (3D maps)",
+                                json_schema_extra={"pattern": params.NUMBERS_PATTERN}),
+        resolution: float = Query(..., description="cell size in metres",
+                                  **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION)),
+        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent",
+                                   json_schema_extra={"pattern": params.ROBOTS_PATTERN}),
     ) -> dict:
         if (xy is None) == (xyz is None):
             raise ApiError("xy", "give exactly one of xy (2D) or xyz (3D)")
@@ -171,7 +215,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         return fmap.robots()
 
     @app.get("/v1/robots/{robot}/trajectory", summary="World positions of a robot's nodes, in node order")
-    def trajectory(robot: str) -> list[list[float]]:
+    def trajectory(robot: str = PathParam(..., json_schema_extra={"pattern": params.ID_PATTERN})) -> list[list[float]]:
         name = params.robot(robot)
         if not any(r["robot"] == name for r in fmap.robots()):
             raise ApiError("robot", f"no robot {name!r} in fleet {state.fleet!r}", status=404)

@@ -6,6 +6,7 @@ app. Limits are checked on the numbers alone, before a grid or array is built.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
@@ -17,6 +18,19 @@ MAX_RESOLUTION = 10.0
 MAX_CELLS = 16_000_000  # per occupancy request
 MAX_POINTS = 10_000  # per point request
 MAX_COORDINATE = 1e9  # metres from the world origin, for points
+
+# The text formats, stated once: the parsers below accept exactly these (float() alone would also
+# take "1_0" or non-ASCII digits), and the OpenAPI schema publishes them as patterns. Blanks are
+# spelled [ \t] because \s means different things in Python and in the schema's ECMA regexes.
+NUMBER = r"[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
+_B = r"[ \t]*"
+NUMBERS_PATTERN = rf"^{_B}{NUMBER}{_B}(?:,{_B}{NUMBER}{_B})*$"
+BBOX_PATTERN = rf"^{_B}{NUMBER}{_B}(?:,{_B}{NUMBER}{_B}){{3}}(?:(?:,{_B}{NUMBER}{_B}){{2}})?$"
+ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+ROBOTS_PATTERN = rf"^{_B}(?:[A-Za-z0-9_-]{{1,64}}{_B})?(?:,{_B}(?:[A-Za-z0-9_-]{{1,64}}{_B})?)*$"
+_NUMBER = re.compile(rf"{_B}{NUMBER}{_B}")
+_NON_FINITE = re.compile(rf"{_B}[-+]?(?:nan|inf|infinity){_B}", re.IGNORECASE)  # parsed, to say "finite"
+_ROBOTS = re.compile(ROBOTS_PATTERN)
 
 
 class ApiError(Exception):
@@ -31,11 +45,10 @@ class ApiError(Exception):
 
 def numbers(text: str, field: str) -> np.ndarray:
     """Comma-separated finite numbers."""
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        values = np.array([float(p) for p in parts], dtype=np.float64)
-    except ValueError:
-        raise ApiError(field, f"must be comma-separated numbers, got {text!r:.80}") from None
+    parts = text.split(",")
+    if not all(_NUMBER.fullmatch(p) or _NON_FINITE.fullmatch(p) for p in parts):
+        raise ApiError(field, f"must be comma-separated numbers, got {text!r:.80}")
+    values = np.array([float(p) for p in parts], dtype=np.float64)
     if not np.isfinite(values).all():
         raise ApiError(field, "every number must be finite (no NaN or infinity)")
     return values
@@ -78,6 +91,8 @@ def robots(selection: str | list[str] | None) -> tuple[str, ...] | None:
     """None (every robot), or ids as a comma-separated string or a list; an empty one selects none."""
     if selection is None:
         return None
+    if isinstance(selection, str) and not _ROBOTS.fullmatch(selection):
+        raise ApiError("robots", f"must be comma-separated ids matching [A-Za-z0-9_-]{{1,64}}, got {selection!r:.80}")
     names = [n.strip() for n in selection.split(",") if n.strip()] if isinstance(selection, str) else selection
     try:
         return tuple(sorted({check_id(n, "robots") for n in names}))

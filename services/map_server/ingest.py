@@ -3,8 +3,12 @@
 Zenoh callbacks only enqueue (key, bytes); one worker thread drains the queue in batches, so
 a batch of scans is one SQLite transaction and one Ack per robot (group commit: thousands of
 messages per second even with synchronous=FULL). The order per batch is: validate every
-message, commit the scans, put them in the FleetMap, publish the scan Acks; then pose
-updates one by one (commit, apply, Ack). Nothing is acknowledged before its commit.
+message, hold back the scans over their robot's storage quota, commit the others, put them in
+the FleetMap, publish the scan Acks; then pose updates one by one (commit, apply, Ack). Nothing
+is acknowledged before its commit.
+
+A scan over the quota is answered with a Rejection, not left unanswered: the robot would
+otherwise resend it forever without knowing why.
 """
 from __future__ import annotations
 
@@ -14,7 +18,7 @@ import threading
 from collections import defaultdict
 from collections.abc import Callable
 
-from protocol import Ack, PoseGraphUpdate, ProtocolError, ScanMessage, ack_key, decode, encode, parse_key
+from protocol import Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode, parse_key
 
 from .state import ServerState
 
@@ -28,9 +32,11 @@ _STOP = object()
 class Ingest:
     """Owns the write path of one server. `submit` is safe from any thread."""
 
-    def __init__(self, state: ServerState, publish: Callable[[str, bytes], None]):
+    def __init__(self, state: ServerState, publish: Callable[[str, bytes], None], quota_bytes: int | None = None):
         self.state = state
-        self.publish = publish  # (key, payload) -> None: sends an Ack
+        self.publish = publish  # (key, payload) -> None: sends an Ack or a Rejection
+        self.quota = quota_bytes  # stored scan bytes per robot; None: no quota
+        self._usage: dict[str, int] = defaultdict(int)  # stored scan bytes per robot (wire size)
         self._queue: queue.Queue = queue.Queue(QUEUE_LIMIT)
         self._thread = threading.Thread(target=self._run, name="gmmap-ingest", daemon=True)
         self._dim: int | None = None  # of the first accepted message: a map is 2D or 3D for good
@@ -53,6 +59,7 @@ class Ingest:
             self._dim = self._dim or record.message.dim
             if isinstance(record.message, ScanMessage):
                 scans += self.state.fleet_map.add_scan(record.message, record.size)
+                self._add_usage(record.message.robot, record.size)
             else:
                 self.state.fleet_map.apply_poses(record.message)
         return scans
@@ -113,11 +120,46 @@ class Ingest:
             log.debug("rejected %s on %s: %s", kind, key, error)
             return None
 
+    def _within_quota(self, scans: list[tuple[ScanMessage, bytes]]) -> list[tuple[ScanMessage, bytes]]:
+        """The scans that fit their robot's quota; the others are counted and refused.
+
+        A resend of a scan already held always passes (it costs nothing, and its Ack may have
+        been lost). Within a batch, every scan counts until the commit says which were new: near
+        the quota this may refuse a scan that would just have fitted, never admit one over it.
+        """
+        if self.quota is None:
+            return scans
+        kept, refused, batch = [], defaultdict(list), defaultdict(int)
+        for message, payload in scans:
+            robot = message.robot
+            if (self._usage[robot] + batch[robot] + len(payload) > self.quota
+                    and self.state.store.scan_bytes(message.fleet, robot, message.node) is None):
+                refused[robot].append(message.node)
+                self.state.metrics.rejected.labels("scan", "quota").inc()
+            else:
+                kept.append((message, payload))
+                batch[robot] += len(payload)
+        for robot, nodes in refused.items():
+            detail = (f"robot {robot} holds {self._usage[robot] / 2**20:.4g} MiB of scans on this server, "
+                      f"the quota is {self.quota / 2**20:.4g} MiB (gmmap server --robot-quota-mb)")
+            log.warning("refused %d scans of %s: %s", len(nodes), robot, detail)
+            self._send(robot, Rejection(self.state.fleet, robot, "scan", tuple(nodes), "quota", detail))
+        return kept
+
+    def _add_usage(self, robot: str, size: int) -> None:
+        self._usage[robot] += size
+        self.state.metrics.stored_bytes.labels(robot).set(self._usage[robot])
+
     def _ingest_scans(self, scans: list[tuple[ScanMessage, bytes]]) -> None:
         state = self.state
-        state.store.put_scans(scans)  # committed: from here on they may be acknowledged
+        scans = self._within_quota(scans)
+        if not scans:
+            return
+        new = state.store.put_scans(scans)  # committed: from here on they may be acknowledged
         acks: dict[str, list[int]] = defaultdict(list)
-        for message, payload in scans:
+        for (message, payload), added in zip(scans, new):
+            if added:
+                self._add_usage(message.robot, len(payload))
             state.fleet_map.add_scan(message, len(payload))  # a held correction applies as it lands
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
@@ -134,8 +176,10 @@ class Ingest:
         self._ack(update.robot, "poses", [update.revision])  # an older revision is acked as superseded
 
     def _ack(self, robot: str, kind: str, ids: list[int]) -> None:
-        ack = Ack(self.state.fleet, robot, kind, tuple(ids))
+        self._send(robot, Ack(self.state.fleet, robot, kind, tuple(ids)))
+
+    def _send(self, robot: str, answer: Ack | Rejection) -> None:
         try:
-            self.publish(ack_key(self.state.fleet, robot), encode(ack))
-        except Exception:  # a lost Ack only costs a resend, which is acknowledged again
-            log.exception("could not publish %s ack for %s", kind, robot)
+            self.publish(ack_key(self.state.fleet, robot), encode(answer))
+        except Exception:  # a lost answer only costs a resend, which is answered again
+            log.exception("could not publish %s %s for %s", answer.kind, type(answer).__name__, robot)

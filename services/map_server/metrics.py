@@ -6,7 +6,7 @@ process from colliding on metric names.
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
 
@@ -25,6 +25,10 @@ class ServerMetrics:
         )
         self.bytes_received = Counter(
             "gmmap_bytes_received", "Wire bytes of accepted messages", ["robot"], registry=r
+        )
+        self.stored_bytes = Gauge(
+            "gmmap_robot_stored_bytes", "Wire bytes of the scans stored per robot (what the quota counts)",
+            ["robot"], registry=r,
         )
         self.query_seconds = Histogram(
             "gmmap_query_seconds", "Occupancy query latency (HTTP and Zenoh)", registry=r,

@@ -19,7 +19,7 @@ import zenoh
 from gmm_core import Grid
 from protocol import (MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard,
                       scan_wildcard)
-from services.api.params import MAX_CELLS, MAX_RESOLUTION, MIN_RESOLUTION  # one set of limits for both APIs
+from services.api import params  # one set of limits for both APIs
 from services.zenoh_config import zenoh_config
 
 from .fleet_map import FleetMap
@@ -29,6 +29,7 @@ from .store import Store
 
 log = logging.getLogger("gmmap.server")
 
+MAX_REQUEST_HEAD = 1 << 20  # bytes
 
 
 @dataclass
@@ -40,16 +41,19 @@ class ServerOptions:
     http: str | None = "127.0.0.1:8000"  # host:port, or None for no HTTP
     data_dir: str = "./gmmap-data"
     synchronous: str = "NORMAL"
+    robot_quota_mb: float = 512.0  # stored scan bytes per robot, MiB; 0: no quota
 
 
 def query_grid(query: MapQuery) -> Grid:
-    """The grid of a MapQuery, within the limits the HTTP API also enforces."""
-    if not MIN_RESOLUTION <= query.resolution <= MAX_RESOLUTION:
-        raise ProtocolError("resolution", f"must lie in [{MIN_RESOLUTION}, {MAX_RESOLUTION}] m, got {query.resolution}")
-    grid = Grid.from_bbox(query.lo, query.hi, query.resolution)
-    if grid.n_cells > MAX_CELLS:
-        raise ProtocolError("bbox", f"{grid.n_cells} cells exceed the limit of {MAX_CELLS} per query")
-    return grid
+    """The grid of a MapQuery, within the limits the HTTP API also enforces.
+
+    The cells are counted in Python integers before a Grid exists: Grid.from_bbox casts to int64,
+    where a huge box wraps around to a small (or zero) cell count.
+    """
+    try:
+        return params.grid(query.lo, query.hi, params.resolution(query.resolution))
+    except params.ApiError as error:
+        raise ProtocolError(error.field, error.message) from None
 
 
 def answer(state: ServerState, payload: bytes) -> bytes:
@@ -119,8 +123,10 @@ def start_http(state: ServerState, address: str):
     import uvicorn
 
     host, _, port = address.rpartition(":")
+    # h11 refuses a request head (request line with its query string, and headers) over this size
+    # with a plain 400; 1 MiB holds the longest GET the API accepts (10,000 points).
     config = uvicorn.Config(create_app(state), host=host or "127.0.0.1", port=int(port),
-                            log_level="warning", lifespan="on")
+                            log_level="warning", lifespan="on", h11_max_incomplete_event_size=MAX_REQUEST_HEAD)
     server = uvicorn.Server(config)
     # uvicorn leaves signal handling to the main thread when it runs elsewhere.
     thread = threading.Thread(target=server.run, name="gmmap-http", daemon=True)
@@ -141,7 +147,8 @@ def run_server(options: ServerOptions) -> int:
     store = Store(options.data_dir, synchronous=options.synchronous)
     state = ServerState(options.fleet, FleetMap(options.fleet), store)
     zenoh_side: ZenohSide | None = None
-    ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload))
+    quota = int(options.robot_quota_mb * 2**20) if options.robot_quota_mb > 0 else None
+    ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload), quota)
     replayed = ingest.replay()
     ingest.start()
     http = None

@@ -1,0 +1,61 @@
+"""`gmmap demo`: a map server and three simulated robots in the office; the viewer shows the map grow."""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+import tempfile
+import threading
+import urllib.request
+from pathlib import Path
+
+from services.sim.fleet import SimSource, robot_name
+from services.sim.processes import Processes, free_port
+
+ROBOTS = 3
+RATE = 5.0  # scans per second per robot
+FOREVER_S = 3600.0  # --duration 0: the robots drive for an hour, the server runs until Ctrl-C
+
+
+def stored_scans(base: str) -> int:
+    try:
+        with urllib.request.urlopen(f"{base}/v1/robots", timeout=5) as response:
+            return sum(r["nodes"] for r in json.loads(response.read()))
+    except OSError:
+        return 0
+
+
+def run_demo(http: str, duration: float) -> int:
+    from tqdm import tqdm
+
+    host, _, port = http.rpartition(":")
+    base = f"http://{'127.0.0.1' if host in ('', '0.0.0.0') else host}:{port}"
+    print(f"gmmap demo: the viewer is at http://{http}/ ({ROBOTS} robots in the office; Ctrl-C stops)", flush=True)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    names = [robot_name(i) for i in range(ROBOTS)]
+    scans = math.ceil((duration or FOREVER_S) * RATE)
+    with tempfile.TemporaryDirectory(prefix="gmmap-demo-") as tmp:
+        procs = Processes(Path(tmp))
+        try:
+            zenoh_port = free_port()
+            procs.server(zenoh_port, http, Path(tmp) / "data")
+            for i, name in enumerate(names):
+                procs.agent(name, str(SimSource("office", i, ROBOTS)), zenoh_port, RATE, scans)
+            with tqdm(total=ROBOTS * scans, desc="scans in the map", unit="scan", file=sys.stderr) as bar:
+                while not stop.wait(1.0):
+                    if procs.reap("server") is not None:
+                        print(f"gmmap demo: the server stopped:\n{procs.log_tail('server')}", file=sys.stderr)
+                        return 1
+                    bar.n = stored_scans(base)
+                    bar.refresh()
+                    if duration and all(procs.reap(f"agent-{n}") is not None for n in names):
+                        break  # the robots have driven for --duration and everything is stored
+        finally:
+            for name in names:
+                procs.stop(f"agent-{name}", timeout=5)
+            procs.stop("server")
+            procs.close()
+    return 0

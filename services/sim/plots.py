@@ -1,0 +1,76 @@
+"""The report's figures (matplotlib, Agg): bytes over time, AUROC over time, final map vs ground truth."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+
+STYLES = {"wire": ("-", "GMM on the wire"), "raw": ("--", "raw scans"), "grid": (":", "0.1 m grid deltas"),
+          "octomap": ("-.", "OctoMap .bt deltas")}
+
+
+def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
+    """Cumulative bytes per robot: what went on the wire (measured) against the alternatives."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (robot, series) in enumerate(per_scan.items()):
+        colour = colours[i % len(colours)]
+        t, sizes = wire_times[robot]
+        ax.step(t, np.cumsum(sizes), STYLES["wire"][0], where="post", color=colour)
+        order = np.argsort(series["t"])
+        for key in ("raw", "grid", "octomap"):
+            if key in series:
+                ax.step(series["t"][order], np.cumsum(series[key][order]), STYLES[key][0], where="post", color=colour)
+    handles = [Line2D([], [], color=colours[i % len(colours)], label=robot) for i, robot in enumerate(per_scan)]
+    handles += [Line2D([], [], color="k", linestyle=style, label=label) for key, (style, label) in STYLES.items()
+                if key == "wire" or any(key in s for s in per_scan.values())]
+    ax.set(yscale="log", xlabel="time since the first scan (s)", ylabel="cumulative bytes",
+           title="Bytes per robot")
+    ax.legend(handles=handles, fontsize=8, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def auroc_over_time(path: Path, timeline: list[dict], corrections: list[float]) -> None:
+    fig, ax = plt.subplots(figsize=(8, 4))
+    t = [row["t_s"] for row in timeline]
+    for key, label in (("served", "served map (pose-graph updates applied)"),
+                       ("published_estimates", "published estimates (updates withheld)"),
+                       ("odometry", "odometry only (no loop closure)")):
+        ax.plot(t, [np.nan if row[key] is None else row[key] for row in timeline], "o-", ms=3, label=label)
+    for i, c in enumerate(corrections):
+        ax.axvline(c, color="grey", lw=0.6, alpha=0.5, label="pose-graph update" if i == 0 else None)
+    ax.set(xlabel="time since the first scan (s)", ylabel="AUROC at 0.1 m vs ground truth",
+           title="Map quality over time")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
+    """Odometry-only map, served map and ground truth side by side; 3D: the horizontal slice at z."""
+    def plane(a):
+        if a.ndim == 2:
+            return a
+        return a[int(np.clip((z - grid.origin[2]) // grid.resolution, 0, a.shape[0] - 1))]
+
+    truth = np.where(maps["observed"], maps["truth"].astype(float), 0.5)
+    panels = [("odometry only (before correction)", maps["odometry"]), ("served (after correction)", maps["served"]),
+              ("ground truth (observed cells)", truth)]
+    extent = [grid.origin[0], grid.upper[0], grid.origin[1], grid.upper[1]]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6 * (extent[3] - extent[2]) / (extent[1] - extent[0]) + 0.8))
+    for ax, (title, a) in zip(axes, panels):
+        ax.imshow(plane(a), cmap="gray_r", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
+        ax.set(title=title + ("" if z is None else f", z = {z:.1f} m"), xlabel="x (m)", ylabel="y (m)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,92 @@
+"""`gmmap` subprocesses of a simulation or demo: a map server and robot agents, each logging to a file."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python -m services.cli`
+SERVER_READY = "gmmap server ready"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Processes:
+    """Children started with `python -m services.cli`; `close` stops whatever still runs."""
+
+    def __init__(self, workdir: Path):
+        self.workdir = workdir
+        self.running: dict[str, subprocess.Popen] = {}
+        self.cpu_s: dict[str, float] = {}  # user + system seconds of each child that was reaped
+        path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+        self.env = dict(os.environ, PYTHONPATH=path, PYTHONUNBUFFERED="1")
+
+    def log_path(self, name: str) -> Path:
+        return self.workdir / f"{name}.log"
+
+    def log_tail(self, name: str, chars: int = 2000) -> str:
+        return self.log_path(name).read_text(errors="replace")[-chars:]
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        with open(self.log_path(name), "ab") as log:
+            # A session of its own: Ctrl-C reaches the parent only, which stops the children in order.
+            proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.workdir, env=self.env,
+                                    stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.running[name] = proc
+        return proc
+
+    def server(self, zenoh_port: int, http: str, data_dir: Path, fleet: str = "default") -> subprocess.Popen:
+        proc = self.start("server", "server", "--fleet", fleet, "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}",
+                          "--http", http, "--data-dir", str(data_dir))
+        deadline = time.monotonic() + 60
+        while SERVER_READY not in self.log_tail("server", 100_000):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise OSError(f"the map server did not start:\n{self.log_tail('server')}")
+            time.sleep(0.05)
+        return proc
+
+    def agent(self, robot: str, source: str, zenoh_port: int, rate: float, scans: int,
+              fleet: str = "default", *extra: str) -> subprocess.Popen:
+        """A simulated robot publishing its first `scans` scans at `rate` per second."""
+        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--fleet", fleet, "--source", source,
+                          "--scans", f"0:{scans}", "--rate", f"{rate:g}",
+                          "--zenoh-connect", f"tcp/127.0.0.1:{zenoh_port}",
+                          "--outbox", str(self.workdir / f"outbox-{robot}.db"), *extra)
+
+    def reap(self, name: str, block: bool = False) -> int | None:
+        """The child's exit code once it has ended (its CPU time noted), else None."""
+        proc = self.running[name]
+        if proc.returncode is None:
+            pid, status, usage = os.wait4(proc.pid, 0 if block else os.WNOHANG)
+            if pid == 0:
+                return None
+            proc.returncode = os.waitstatus_to_exitcode(status)  # Popen must not wait for it again
+            self.cpu_s[name] = usage.ru_utime + usage.ru_stime
+        return proc.returncode
+
+    def stop(self, name: str, timeout: float = 15.0) -> int:
+        """SIGTERM, then SIGKILL after `timeout` s; the exit code."""
+        proc = self.running[name]
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + timeout
+            while self.reap(name) is None:
+                if time.monotonic() > deadline:
+                    proc.kill()
+                    return self.reap(name, block=True)
+                time.sleep(0.05)
+        return proc.returncode
+
+    def close(self) -> None:
+        for name, proc in self.running.items():
+            if proc.returncode is None:
+                proc.kill()
+                self.reap(name, block=True)

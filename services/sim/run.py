@@ -1,0 +1,306 @@
+"""`gmmap sim`: a simulated fleet over real Zenoh, measured while it runs.
+
+One map server and one agent per robot run as processes on 127.0.0.1 (scouting off). Each
+agent reaches the server through a CountingRelay (its link, bytes counted both ways); a Zenoh
+client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
+the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles. When
+every agent is done (all its scans acknowledged) the server stops and the record is graded
+by services.sim.report.
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import multiprocessing
+import random
+import resource
+import sqlite3
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gmm_core import Grid
+from services.api.params import MAX_CELLS
+from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
+from services.sim.processes import Processes, free_port
+from services.sim.relay import CountingRelay
+from services.sim.tap import WireEvent, WireTap
+
+RESOLUTION = 0.1  # m, of the maps graded against ground truth
+MARGIN_3D = (8.0, 8.0, 3.0)  # m around the paths: the graded box of a 3D world
+TILE = 256  # cells per tile side, as the viewer asks
+SNAPSHOT_CELLS = 500_000  # per request: the server's map lock is free for ingest between requests
+ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
+
+
+@dataclass
+class SimOptions:
+    robots: int = 3
+    world: str = "office"
+    duration: float = 60.0  # simulated seconds per robot (= wall seconds: agents publish at `rate`)
+    rate: float = 5.0
+    seed: int = 0
+    http_clients: int = 0
+    report: str | None = None
+    component_size: float | None = None  # m, passed to the agents' fit; None: their default
+    fleet: str = "default"
+
+    @property
+    def scans(self) -> int:
+        return max(1, math.ceil(self.duration * self.rate))
+
+
+@dataclass
+class Snapshot:
+    t: float  # epoch seconds when it was asked for
+    stored: dict[str, int]  # scans acknowledged per robot by then
+    path: Path  # the npy file
+
+
+@dataclass
+class RunRecord:
+    """Everything observed during one run; services.sim.report turns it into numbers and plots."""
+
+    options: SimOptions
+    fleet: SimulatedFleet
+    grid: Grid
+    update_every: int
+    started: float  # epoch seconds when the agents were started
+    wall_s: float = 0.0
+    events: list[WireEvent] = field(default_factory=list)
+    link_bytes: dict[str, tuple[int, int]] = field(default_factory=dict)  # robot -> (up, down)
+    snapshots: list[Snapshot] = field(default_factory=list)
+    tile_latencies: list[float] = field(default_factory=list)
+    tile_errors: int = 0
+    published: dict[str, int] = field(default_factory=dict)  # scans each agent fitted and sent
+    stored: dict[tuple[str, int], bytes] = field(default_factory=dict)  # the server's store
+    components: dict[str, int] = field(default_factory=dict)
+    agent_exit: dict[str, int] = field(default_factory=dict)
+    cpu_s: dict[str, float] = field(default_factory=dict)
+
+
+def evaluation_grid(fleet: SimulatedFleet) -> Grid:
+    """The graded box at RESOLUTION: a whole 2D world, or the paths of a 3D one plus MARGIN_3D."""
+    raster = fleet.world.raster
+    if fleet.world.dim == 2:
+        return Grid.from_bbox(raster.origin, raster.upper, RESOLUTION)
+    positions = np.concatenate([path[:, :3] for path in fleet.paths])
+    lo = np.maximum(np.floor(positions.min(axis=0) - MARGIN_3D), raster.origin)
+    hi = np.minimum(np.ceil(positions.max(axis=0) + MARGIN_3D), raster.upper)
+    return Grid.from_bbox(lo, hi, RESOLUTION)
+
+
+def slabs(grid: Grid, max_cells: int = MAX_CELLS) -> list[Grid]:
+    """The grid cut along its first array axis (y in 2D, z in 3D) into pieces of at most `max_cells`."""
+    per_slab = max(1, max_cells // (grid.n_cells // grid.array_shape[0]))
+    pieces = []
+    for first in range(0, grid.array_shape[0], per_slab):
+        origin, shape = grid.origin.copy(), list(grid.shape)
+        origin[-1] += first * grid.resolution
+        shape[-1] = min(per_slab, grid.array_shape[0] - first)
+        pieces.append(Grid(origin, grid.resolution, tuple(shape)))
+    return pieces
+
+
+def fetch_occupancy(base: str, grid: Grid) -> np.ndarray:
+    """GET /v1/occupancy as npy, slab by slab."""
+    arrays = []
+    for slab in slabs(grid, SNAPSHOT_CELLS):
+        bbox = ",".join(repr(float(v)) for v in (*slab.origin, *slab.upper))
+        with urllib.request.urlopen(f"{base}/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy",
+                                    timeout=300) as response:
+            arrays.append(np.load(io.BytesIO(response.read())))
+    return np.concatenate(arrays)
+
+
+def tile_urls(base: str, grid: Grid) -> list[str]:
+    """The viewer's tiles over the graded box: TILE cells a side, at 1, 2 and 4 times the base resolution."""
+    base_res = 0.05 if grid.dim == 2 else 0.1  # a 3D tile spans the box's height as well
+    urls = []
+    for res in (base_res, 2 * base_res, 4 * base_res):
+        size = TILE * res
+        for ix in range(int(grid.origin[0] // size), int(math.ceil(grid.upper[0] / size))):
+            for iy in range(int(grid.origin[1] // size), int(math.ceil(grid.upper[1] / size))):
+                lo, hi = [ix * size, iy * size], [(ix + 1) * size, (iy + 1) * size]
+                if grid.dim == 3:
+                    lo, hi = lo + [grid.origin[2]], hi + [grid.upper[2]]
+                urls.append(f"{base}/v1/occupancy?bbox={','.join(f'{v:.4f}' for v in lo + hi)}"
+                            f"&resolution={res}&format=png")
+    return urls
+
+
+def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
+    """`clients` threads fetching random tiles until `stop` is set; puts (latencies, errors) on `results`."""
+    latencies, errors, lock = [], [0], threading.Lock()
+
+    def client(seed: int) -> None:
+        rng = random.Random(seed)
+        while not stop.is_set():
+            start = time.perf_counter()
+            try:
+                urllib.request.urlopen(rng.choice(urls), timeout=60).read()
+                with lock:
+                    latencies.append(time.perf_counter() - start)
+            except OSError:
+                with lock:
+                    errors[0] += 1
+
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    results.put((latencies, errors[0]))
+
+
+class TileClients:
+    """HTTP clients in a process of their own, so that their threads do not hold up the relays' and the tap's."""
+
+    def __init__(self, urls: list[str], clients: int):
+        spawn = multiprocessing.get_context("spawn")  # no fork of a process running Zenoh
+        self._stop, self._results = spawn.Event(), spawn.Queue()
+        self._process = spawn.Process(target=fetch_tiles, args=(urls, clients, self._stop, self._results), daemon=True)
+        self._process.start()
+
+    def stop(self) -> tuple[list[float], int]:
+        """(latencies of the answered requests, failed requests)."""
+        self._stop.set()
+        answer = self._results.get(timeout=120)
+        self._process.join()
+        return answer
+
+
+def published_scans(outbox: Path) -> int:
+    """Scans the agent sent: acknowledged ones plus any still waiting in its outbox."""
+    db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
+    try:
+        return db.execute("SELECT (SELECT COUNT(*) FROM acked WHERE kind = 'scan') + "
+                          "(SELECT COUNT(*) FROM outbox WHERE kind = 'scan')").fetchone()[0]
+    finally:
+        db.close()
+
+
+def stored_scans(data_dir: Path, fleet: str) -> dict[tuple[str, int], bytes]:
+    db = sqlite3.connect(f"file:{data_dir / 'gmmap.db'}?mode=ro", uri=True, timeout=10)
+    try:
+        rows = db.execute("SELECT robot, node, raw FROM scans WHERE fleet = ?", (fleet,))
+        return {(robot, node): raw for robot, node, raw in rows}
+    finally:
+        db.close()
+
+
+def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
+    """Run the fleet once; server, agents, relays and the tap are gone when this returns."""
+    from tqdm import tqdm
+
+    fleet = SimulatedFleet(o.world, o.robots, o.scans, o.rate, o.seed)
+    grid = evaluation_grid(fleet)
+    names = [robot_name(i) for i in range(o.robots)]
+    procs = Processes(workdir)
+    relays: dict[str, CountingRelay] = {}
+    tap = clients = None
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_before = usage.ru_utime + usage.ru_stime
+    try:
+        zport, hport = free_port(), free_port()
+        base = f"http://127.0.0.1:{hport}"
+        procs.server(zport, f"127.0.0.1:{hport}", workdir / "data", o.fleet)
+        tap = WireTap(o.fleet, zport)
+        record = RunRecord(o, fleet, grid, correction_interval(o.rate), time.time())
+        # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
+        # around the link; a robot's radio link has no such shortcut.
+        no_shm = workdir / "agent-zenoh.json5"
+        no_shm.write_text('{transport: {shared_memory: {enabled: false}}}')
+        for i, name in enumerate(names):
+            relays[name] = CountingRelay(zport)
+            fit = ("--component-size", f"{o.component_size:g}") if o.component_size else ()
+            procs.agent(name, str(SimSource(o.world, i, o.robots, o.seed)), relays[name].port, o.rate, o.scans,
+                        o.fleet, "--zenoh-config", str(no_shm), *fit)
+        if o.http_clients:
+            clients = TileClients(tile_urls(base, grid), o.http_clients)
+
+        snapshots_dir = workdir / "snapshots"
+        snapshots_dir.mkdir()
+
+        def snapshot() -> float:
+            """Fetch and keep the whole graded map; the seconds it took."""
+            t, stored = time.time(), tap.stored_per_robot()
+            path = snapshots_dir / f"{len(record.snapshots):03d}.npy"
+            np.save(path, fetch_occupancy(base, grid))
+            record.snapshots.append(Snapshot(t, stored, path))
+            return time.time() - t
+
+        every = max(2.0, o.duration / 12)  # and >= 3x the last fetch: grading takes <= 1/4 of the server
+        deadline = time.monotonic() + o.duration + ACK_TIMEOUT_S + 60
+        next_snapshot = time.monotonic() + every
+        total = o.robots * o.scans
+        with tqdm(total=total, desc="published", unit="scan", file=sys.stderr) as published, \
+                tqdm(total=total, desc="stored", unit="scan", file=sys.stderr) as stored:
+            while any(procs.reap(f"agent-{n}") is None for n in names) and time.monotonic() < deadline:
+                if stored.n and time.monotonic() >= next_snapshot:
+                    next_snapshot = time.monotonic() + max(every, 3 * snapshot())
+                published.n, stored.n = tap.counts()
+                published.refresh()
+                stored.refresh()
+                time.sleep(0.2)
+            published.n, stored.n = tap.counts()
+        if clients is not None:
+            record.tile_latencies, record.tile_errors = clients.stop()
+            clients = None
+        for name in names:
+            code = procs.stop(f"agent-{name}", timeout=5)  # only one past the deadline is still running
+            record.agent_exit[name] = code
+            if code != 0:
+                print(f"gmmap sim: agent {name} exited {code}:\n{procs.log_tail(f'agent-{name}')}", file=sys.stderr)
+        snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
+        with urllib.request.urlopen(f"{base}/v1/robots", timeout=30) as response:
+            record.components = {r["robot"]: r["components"] for r in json.loads(response.read())}
+        procs.stop("server")
+        record.wall_s = time.time() - record.started
+        record.events = list(tap.events)
+        record.link_bytes = {name: (relay.up, relay.down) for name, relay in relays.items()}
+        record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}
+        record.stored = stored_scans(workdir / "data", o.fleet)
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        record.cpu_s = {"server": procs.cpu_s["server"],
+                        "agents": sum(procs.cpu_s[f"agent-{n}"] for n in names),
+                        "harness": usage.ru_utime + usage.ru_stime - cpu_before}
+        return record
+    finally:
+        if clients is not None:
+            clients.stop()
+        if tap is not None:
+            tap.close()
+        for relay in relays.values():
+            relay.close()
+        procs.close()
+
+
+def run_sim(o: SimOptions) -> int:
+    from services.sim.report import grade, write_report
+
+    if o.robots < 1 or o.duration <= 0 or o.rate <= 0 or o.http_clients < 0:
+        raise ValueError("--robots and --rate must be positive, --duration > 0, --http-clients >= 0")
+    with tempfile.TemporaryDirectory(prefix="gmmap-sim-") as tmp:
+        record = run_fleet(o, Path(tmp))
+        grading = grade(record)
+        if o.report:
+            write_report(grading, record, Path(o.report))
+    report = grading.report
+    print(summary(report))
+    return 0 if report["scans_stored"] == report["scans_published"] else 1
+
+
+def summary(report: dict) -> str:
+    keys = ["robots", "duration_s", "scans_published", "scans_stored", "bytes_on_wire", "raw_scan_bytes",
+            "grid_delta_bytes", "octomap_delta_bytes", "components", "auroc", "auroc_before_correction",
+            "ingest_lag_p99_s", "tile_latency_p99_s", "realtime_factor"]
+    return "\n".join(f"{k:>24}: {report[k]:.4g}" if isinstance(report[k], float) else f"{k:>24}: {report[k]}"
+                     for k in keys)

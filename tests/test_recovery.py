@@ -1,0 +1,73 @@
+"""Restarts in the middle of a run, one trial each (bench/crash_trials.py runs many): the Zenoh
+router between agents and server is killed and restarted; an agent is killed and restarted on
+its outbox. Nothing acknowledged may be lost, and everything must arrive in the end."""
+from __future__ import annotations
+
+import signal
+import time
+
+from services.map_server.check import check_store
+from test_services import HALVES, acked_nodes, free_port, http_get, metric, procs, stored_nodes, wait_for  # noqa: F401
+
+RATE = "150"  # scans per second per agent: the 455 scans of a half take about 3 s
+
+
+def all_stored(data) -> int:
+    return len(stored_nodes(data, "a")) + len(stored_nodes(data, "b"))
+
+
+def assert_complete_and_sound(data, tmp_path) -> None:
+    for robot, (start, stop) in (("a", (0, 455)), ("b", (455, 910))):
+        assert stored_nodes(data, robot) == set(range(start, stop)), robot
+        assert acked_nodes(tmp_path / f"outbox-{robot}.db") <= stored_nodes(data, robot)
+    check = check_store(data)
+    assert check.ok and check.scans == 910, (check.integrity, check.bad[:3])
+
+
+def test_router_killed_and_restarted_mid_run_loses_nothing(procs, data_dir, tmp_path):  # noqa: F811
+    rport, data = free_port(), tmp_path / "data"
+    router_args = ("router", "router", "--listen", f"tcp/127.0.0.1:{rport}")
+    router = procs.ready(procs.start(*router_args), "gmmap router ready")
+    procs.server("server", data, 0, free_port(), "--zenoh-connect", f"tcp/127.0.0.1:{rport}")
+    agents = [procs.agent(r, rport, data_dir, "--rate", RATE, "--resend", "0.5", "--timeout", "60") for r in HALVES]
+    wait_for(lambda: all_stored(data) >= 150, 60, "150 stored scans", interval=0.02)
+
+    router.send_signal(signal.SIGKILL)
+    router.wait()
+    stored_at_kill = all_stored(data)
+    for robot in HALVES:
+        assert acked_nodes(tmp_path / f"outbox-{robot}.db") <= stored_nodes(data, robot)
+    time.sleep(1.0)  # down for a while
+    assert all(a.poll() is None for a in agents), "an agent finished without a router"
+    assert all_stored(data) == stored_at_kill  # no path from agents to server while it is down
+
+    # Same port, a new process: agents (clients) and server (peer) reconnect by themselves.
+    procs.ready(procs.start(*router_args), "gmmap router ready")
+    for a in agents:
+        assert procs.finish(a, 90) == 0, procs.log(a)
+    assert_complete_and_sound(data, tmp_path)
+
+
+def test_agent_killed_and_restarted_resumes_from_its_outbox(procs, data_dir, tmp_path):  # noqa: F811
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    options = ("--rate", RATE, "--resend", "0.5", "--timeout", "60")
+    agents = {r: procs.agent(r, zport, data_dir, *options) for r in HALVES}
+    wait_for(lambda: len(stored_nodes(data, "a")) >= 100, 60, "100 stored scans of a", interval=0.02)
+
+    agents["a"].send_signal(signal.SIGKILL)
+    agents["a"].wait()
+    acked = acked_nodes(tmp_path / "outbox-a.db")
+    assert acked and acked <= stored_nodes(data, "a")
+
+    agents["a"] = procs.agent("a", zport, data_dir, *options)
+    for robot, agent in agents.items():
+        assert procs.finish(agent, 90) == 0, procs.log(agent)
+    assert_complete_and_sound(data, tmp_path)
+    # It resumed: the scans acknowledged before the kill were neither fitted nor sent again.
+    summary = procs.log(agents["a"]).strip().splitlines()[-1]
+    assert "455 scans (" in summary and "resumed" in summary, summary
+    resumed = int(summary.split("455 scans (")[1].split()[0])
+    assert resumed >= len(acked)
+    accepted = metric(http_get(hport, "/metrics").decode(), "gmmap_messages_accepted_total", kind="scan")
+    assert accepted < 910 + len(acked) // 2, accepted  # not every scan of a twice
