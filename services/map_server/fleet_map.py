@@ -76,7 +76,8 @@ class Robot:
 
 
 class FleetMap:
-    """Thread-safe: one lock guards the state and the ray tracer (numba kernels run one at a time)."""
+    """Thread-safe. A short lock guards the state; a second one serialises sampling and ray
+    tracing (numba's kernels run one at a time), so ingest never waits behind a cold tile."""
 
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR):
         self.fleet = fleet
@@ -85,6 +86,8 @@ class FleetMap:
         self.dim: int | None = None
         self._robots: dict[str, Robot] = {}
         self._lock = threading.RLock()
+        self._trace_lock = threading.Lock()  # sample cache and numba kernels
+        self._version = 0  # bumped by every change a tile could see
         self._index: tuple[list[tuple[str, int]], np.ndarray, np.ndarray] | None = None
         self._samples: OrderedDict = OrderedDict()
         self._sample_rays = 0
@@ -153,6 +156,7 @@ class FleetMap:
     def _changed(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Forget the node index and every cached tile that one of the boxes (lo, hi) reaches."""
         self._index = None
+        self._version += 1
         for key in [k for k, (g_lo, g_hi, _) in self._tiles.items()
                     if np.any(np.all(lo <= g_hi, axis=1) & np.all(hi >= g_lo, axis=1))]:
             del self._tiles[key]
@@ -193,27 +197,27 @@ class FleetMap:
 
     def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Hit and miss evidence on `grid` from the nodes that can reach it (all robots or `robots`)."""
-        with self._lock:
+        with self._lock:  # a snapshot of the reaching nodes and their world poses
             if self.dim is not None and grid.dim != self.dim:
                 raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
             keys, lo, hi = self._node_index()
-            if not keys:
-                return np.zeros(grid.array_shape, np.float32), np.zeros(grid.array_shape, np.float32)
-            reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1)
+            reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1) if keys else []
             wanted = None if robots is None else set(robots)
-
-            def groups():
-                for i in np.flatnonzero(reach):
-                    name, node_id = keys[i]
-                    if wanted is not None and name not in wanted:
-                        continue
+            posed = []
+            for i in np.flatnonzero(reach):
+                name, node_id = keys[i]
+                if wanted is None or name in wanted:
                     robot = self._robots[name]
                     node = robot.nodes[node_id]
-                    ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
-                    if len(ends):
-                        pose = robot.world_pose(node)
-                        yield pose.apply(node.model.origin[None])[0], pose.apply(ends), weights, is_hit
+                    posed.append((name, node_id, node, robot.world_pose(node)))
 
+        def groups():
+            for name, node_id, node, pose in posed:
+                ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
+                if len(ends):
+                    yield pose.apply(node.model.origin[None])[0], pose.apply(ends), weights, is_hit
+
+        with self._trace_lock:
             return trace_groups(grid, groups(), None)
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
@@ -226,12 +230,16 @@ class FleetMap:
                 self._cache_hits += 1
                 return cached[2]
             self._cache_misses += 1
-            prob = map_estimate(*self.counts(grid, robots), self.prior)
-            prob.setflags(write=False)
-            self._tiles[key] = (grid.origin, grid.upper, prob)
-            while len(self._tiles) > TILE_CACHE_ENTRIES:
-                self._tiles.popitem(last=False)
-            return prob
+            version = self._version
+        prob = map_estimate(*self.counts(grid, robots), self.prior)
+        prob.setflags(write=False)
+        with self._lock:
+            # A change while this tile was traced may not be in it: serve it, do not keep it.
+            if self._version == version:
+                self._tiles[key] = (grid.origin, grid.upper, prob)
+                while len(self._tiles) > TILE_CACHE_ENTRIES:
+                    self._tiles.popitem(last=False)
+        return prob
 
     def cache_stats(self) -> dict:
         with self._lock:
