@@ -1,7 +1,7 @@
 """Tile latency of a real `gmmap server` under 32 concurrent HTTP clients (issue 5).
 
 A server process is filled by a real agent replaying the Intel log (910 scans), then N client
-threads in this process fetch 256 x 256 PNG tiles of the viewer's tiling (0.05, 0.1 and 0.2 m)
+threads in this process (services.sim.run.TileClients) fetch 256 x 256 PNG tiles of the viewer's tiling (0.05, 0.1 and 0.2 m)
 at random for a fixed time. Phase "cold" starts with an empty tile cache; phase "warm" repeats.
 
     .venv/bin/python bench/http_load.py [--clients 32] [--seconds 15]
@@ -9,17 +9,18 @@ at random for a fixed time. Phase "cold" starts with an empty tile cache; phase 
 from __future__ import annotations
 
 import argparse
-import random
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.request
 from pathlib import Path
 
 import numpy as np
+
+from gmm_core import Grid
+from services.sim.run import TileClients, tile_urls
 
 ROOT = Path(__file__).resolve().parents[1]
 LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
@@ -43,43 +44,6 @@ def wait_http(url: str, timeout: float = 30.0) -> None:
     raise RuntimeError(f"{url} did not answer")
 
 
-def tile_urls(base: str) -> list[str]:
-    """The viewer's fixed tiling: 256-cell tiles over the Intel map at three resolutions."""
-    urls = []
-    for res in (0.05, 0.1, 0.2):
-        size = 256 * res
-        for ix in range(int(np.floor(-21 / size)), int(np.ceil(26 / size))):
-            for iy in range(int(np.floor(-31 / size)), int(np.ceil(14 / size))):
-                x, y = ix * size, iy * size
-                urls.append(f"{base}/v1/occupancy?bbox={x:.4f},{y:.4f},{x + size:.4f},{y + size:.4f}"
-                            f"&resolution={res}&format=png")
-    return urls
-
-
-def load(urls: list[str], clients: int, seconds: float) -> tuple[list[float], int]:
-    latencies, errors, lock = [], [0], threading.Lock()
-    stop = time.monotonic() + seconds
-
-    def client(seed: int):
-        rng = random.Random(seed)
-        while time.monotonic() < stop:
-            t0 = time.perf_counter()
-            try:
-                urllib.request.urlopen(rng.choice(urls), timeout=30).read()
-                with lock:
-                    latencies.append(time.perf_counter() - t0)
-            except OSError:
-                with lock:
-                    errors[0] += 1
-
-    threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    return latencies, errors[0]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--clients", type=int, default=32)
@@ -95,11 +59,14 @@ def main() -> None:
             subprocess.run(GMMAP + ["agent", "--robot", "intel", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
                                     "--source", f"carmen:{LOG}", "--outbox", f"{data}/outbox.db"],
                            cwd=ROOT, check=True, stderr=subprocess.DEVNULL)
-            urls = tile_urls(base)
+            # The viewer's tiling over the Intel map (0.05, 0.1 and 0.2 m), as `gmmap sim` fetches it.
+            urls = tile_urls(base, Grid.from_bbox([-21.0, -31.0], [26.0, 14.0], 0.05))
             print(f"{len(urls)} distinct tiles, {args.clients} clients, {args.seconds:.0f} s per phase")
             print("| phase | requests | errors | req/s | p50 ms | p90 ms | p99 ms |\n|---|---|---|---|---|---|---|")
             for phase in ("cold", "warm"):
-                lat, errors = load(urls, args.clients, args.seconds)
+                clients = TileClients(urls, args.clients)
+                time.sleep(args.seconds)
+                lat, errors = clients.stop()
                 ms = 1000 * np.percentile(lat, [50, 90, 99])
                 print(f"| {phase} | {len(lat)} | {errors} | {len(lat) / args.seconds:.0f} | "
                       f"{ms[0]:.1f} | {ms[1]:.1f} | {ms[2]:.1f} |")

@@ -88,6 +88,7 @@ class FleetMap:
         self._lock = threading.RLock()
         self._trace_lock = threading.Lock()  # sample cache and numba kernels
         self._version = 0  # bumped by every change a tile could see
+        self._in_flight: dict = {}  # tile key -> lock held while that tile is traced
         self._index: tuple[list[tuple[str, int]], np.ndarray, np.ndarray] | None = None
         self._samples: OrderedDict = OrderedDict()
         self._sample_rays = 0
@@ -221,25 +222,35 @@ class FleetMap:
             return trace_groups(grid, groups(), None)
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
-        """p(occupied) on `grid`, Eq. 11; cached until a node that reaches the grid changes."""
+        """p(occupied) on `grid`, Eq. 11; cached until a node that reaches the grid changes.
+
+        Concurrent requests for the same cold tile trace it once: the others wait for it.
+        """
         key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
         with self._lock:
-            cached = self._tiles.get(key)
-            if cached is not None:
-                self._tiles.move_to_end(key)
-                self._cache_hits += 1
-                return cached[2]
-            self._cache_misses += 1
-            version = self._version
-        prob = map_estimate(*self.counts(grid, robots), self.prior)
-        prob.setflags(write=False)
-        with self._lock:
-            # A change while this tile was traced may not be in it: serve it, do not keep it.
-            if self._version == version:
-                self._tiles[key] = (grid.origin, grid.upper, prob)
-                while len(self._tiles) > TILE_CACHE_ENTRIES:
-                    self._tiles.popitem(last=False)
-        return prob
+            in_flight = self._in_flight.setdefault(key, threading.Lock())
+        with in_flight:
+            with self._lock:
+                cached = self._tiles.get(key)
+                if cached is not None:
+                    self._tiles.move_to_end(key)
+                    self._cache_hits += 1
+                    return cached[2]
+                self._cache_misses += 1
+                version = self._version
+            try:
+                prob = map_estimate(*self.counts(grid, robots), self.prior)
+            finally:
+                with self._lock:
+                    self._in_flight.pop(key, None)
+            prob.setflags(write=False)
+            with self._lock:
+                # A change while this tile was traced may not be in it: serve it, do not keep it.
+                if self._version == version:
+                    self._tiles[key] = (grid.origin, grid.upper, prob)
+                    while len(self._tiles) > TILE_CACHE_ENTRIES:
+                        self._tiles.popitem(last=False)
+            return prob
 
     def cache_stats(self) -> dict:
         with self._lock:
