@@ -24,6 +24,13 @@ def _check_finite(value, field: str) -> float:
     return float(value)
 
 
+def _check_positive(value, field: str) -> float:
+    value = _check_finite(value, field)
+    if value <= 0:
+        raise ProtocolError(field, f"must be > 0, got {value}")
+    return value
+
+
 @dataclass(frozen=True, eq=False)
 class ScanMessage:
     """One scan of one robot: its two mixtures in the node frame and the node's pose estimate.
@@ -160,9 +167,7 @@ class MapQuery:
             raise ProtocolError("bbox", f"lo and hi must both have 2 or 3 entries, got {lo.shape}, {hi.shape}")
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo < hi).all()):
             raise ProtocolError("bbox", "must be finite with lo < hi on every axis")
-        resolution = _check_finite(self.resolution, "resolution")
-        if resolution <= 0:
-            raise ProtocolError("resolution", f"must be > 0, got {resolution}")
+        resolution = _check_positive(self.resolution, "resolution")
         if self.robots is not None:
             robots = tuple(check_id(robot, "robots") for robot in self.robots)
             object.__setattr__(self, "robots", robots)
@@ -195,9 +200,7 @@ class MapReply:
             raise ProtocolError("shape", f"every extent must be >= 1, got {probabilities.shape}")
         if not np.isfinite(origin).all():
             raise ProtocolError("origin", "must be finite")
-        resolution = _check_finite(self.resolution, "resolution")
-        if resolution <= 0:
-            raise ProtocolError("resolution", f"must be > 0, got {resolution}")
+        resolution = _check_positive(self.resolution, "resolution")
         if not ((probabilities >= 0) & (probabilities <= 1)).all():  # also rejects NaN
             raise ProtocolError("probabilities", "must lie in [0, 1]")
         object.__setattr__(self, "origin", origin)
