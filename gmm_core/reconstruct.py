@@ -20,11 +20,12 @@ RAYS_PER_BATCH = 2_000_000  # bounds memory: rays are traced in batches and thei
 
 
 def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
-                progress: Callable[[int], None] | None):
+                progress: Callable[[int], None] | None, dtype=np.float32):
     """Trace groups of rays (world origin, world ends, weights, is_hit) in batches.
 
     Counts add up across batches, so memory stays bounded however many scans there are. They are
-    summed in float64 and returned as float32, so the map does not depend on batching or threads.
+    summed in float64 and returned as `dtype`, so the map does not depend on batching or threads
+    (with sampling's quantised weights the float64 sums are exact).
     """
     hits = np.zeros(grid.array_shape)
     misses = np.zeros(grid.array_shape)
@@ -49,7 +50,7 @@ def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.nda
         if n_rays >= RAYS_PER_BATCH:
             flush()
     flush()
-    return hits.astype(np.float32), misses.astype(np.float32)
+    return hits.astype(dtype, copy=False), misses.astype(dtype, copy=False)
 
 
 def _reaches(grid: Grid, origin: np.ndarray, ends: np.ndarray) -> bool:

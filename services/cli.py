@@ -246,7 +246,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-range", type=float, default=10.0)
     p.add_argument("--component-size", type=float, default=None, metavar="M",
                    help="at most one component per occupied cell of this size (default: none in 2D, 1.0 m in 3D)")
-    p.add_argument("--resend", type=float, default=1.0, metavar="S", help="resend what is unacknowledged after S s")
+    p.add_argument("--resend", type=float, default=1.0, metavar="S",
+                   help="resend what is unacknowledged after at least S s (longer when Acks come slowly, "
+                        "doubling with each resend)")
     p.add_argument("--timeout", type=float, default=120.0, metavar="S",
                    help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)")
     p.add_argument("-v", "--verbose", action="store_true")

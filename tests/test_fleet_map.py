@@ -94,6 +94,37 @@ def test_tile_cache_hits_and_invalidation_only_where_nodes_moved(fitted):
     assert fleet.occupancy(GRID) is not first  # the moved node reaches GRID: recomputed
 
 
+def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted):
+    """Scans arriving, partial corrections and an anchor change between queries: each updated tile
+    (only the difference traced) equals the tile a new FleetMap traces from scratch."""
+    scans, models = fitted
+    served = FleetMap("f")
+    messages = [ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i))
+                for i, (s, m) in enumerate(zip(scans, models))]
+
+    def fresh():
+        fleet = FleetMap("f")
+        for msg in messages[:added]:
+            fleet.add_scan(msg)
+        for update in updates:
+            fleet.apply_poses(update)
+        return fleet.occupancy(GRID)
+
+    added, updates = 0, []
+    for step, upto in enumerate((30, 60, 90, 120)):
+        for msg in messages[added:upto]:
+            served.add_scan(msg)
+        added = upto
+        if step == 1:  # correct every other node received so far
+            updates.append(PoseGraphUpdate("f", "r1", 1, tuple((s.index, s.pose) for s in scans[:upto:2])))
+        if step == 2:
+            updates.append(PoseGraphUpdate("f", "r1", 2, (), anchor=Pose.from_xytheta(0.3, -0.2, 0.05)))
+        for update in updates[-1:] if step in (1, 2) else []:
+            served.apply_poses(update)
+        assert np.array_equal(served.occupancy(GRID), fresh()), f"step {step}"
+    assert served.cache_stats()["misses"] == 1 and served.cache_stats()["updates"] == 3
+
+
 def test_query_touches_only_nodes_that_reach_it(fitted):
     scans, models = fitted
     fleet = FleetMap("f")

@@ -112,14 +112,31 @@ def test_a_correction_that_arrives_before_its_scan_is_applied_to_it(tmp_path, mo
     assert restarted.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
 
 
+def test_outbox_backs_off_exponentially_and_measures_round_trips_of_first_sendings(tmp_path):
+    box = Outbox(tmp_path / "o.db", "default", "r")
+    box.add("scan", 1, "k1", b"one")
+    box.add("scan", 2, "k2", b"two")
+    box.mark_sent([("scan", 1), ("scan", 2)])
+    box.mark_sent([("scan", 2)])  # a second sending: due again after 2 s, then 4 s, ... up to the cap
+    sent = time.time()
+    due = lambda after: [i for _, i, _, _ in box.due(sent + after, 1.0, max_timeout=3.0)]  # noqa: E731
+    assert due(0.5) == [] and due(1.5) == [1] and due(2.5) == [1, 2]
+    box.mark_sent([("scan", 2)] * 3)  # 5 sendings: 16 s, capped at 3 s
+    assert due(3.5) == [1, 2]
+    trips = box.acknowledge("scan", (1, 2))
+    assert len(trips) == 1 and 0 <= trips[0] < 5  # scan 2 was sent more than once (Karn's rule)
+    box.close()
+
+
 def test_outbox_keeps_messages_until_acknowledged(tmp_path):
     box = Outbox(tmp_path / "o.db", "default", "r")
     box.add("scan", 1, "k1", b"one")
     box.add("poses", 1, "kp", b"graph")
-    assert [(k, i) for k, i, _, _ in box.due(older_than=1e18)] == [("scan", 1), ("poses", 1)]  # scans first
+    assert [(k, i) for k, i, _, _ in box.due(time.time(), 1.0)] == [("scan", 1), ("poses", 1)]  # scans first
     box.mark_sent([("scan", 1), ("poses", 1)])
-    assert box.due(older_than=0) == []
-    assert box.acknowledge("scan", (1, 7)) == 1
+    assert box.due(time.time(), 1.0) == []
+    assert [k for k, *_ in box.due(time.time() + 1.0, 1.0)] == ["scan", "poses"]
+    assert len(box.acknowledge("scan", (1, 7))) == 1  # one round trip: scan 1, sent once
     assert box.pending() == 1 and box.acked("scan") == {1, 7}
     assert [box.next_revision(), box.next_revision()] == [1, 2]
     box.close()

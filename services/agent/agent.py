@@ -1,8 +1,10 @@
 """`gmmap agent`: fit a robot's scans, publish them and its pose-graph updates until acknowledged.
 
 Every message goes to the outbox (committed) before it is published; a resender thread
-republishes whatever has waited longer than `resend_s` without an Ack, so after a server
-restart or a reconnect everything gets through. The Zenoh session (client mode) opens in the
+republishes what has gone unanswered, so after a server restart or a reconnect everything gets
+through. The resend timeout follows the measured Ack round trip (TCP's estimator, RFC 6298,
+never below `resend_s`) and doubles with every further sending of a message: a server that is
+slow but alive is not buried in copies of what it is still storing. The Zenoh session (client mode) opens in the
 background: a robot out of reach keeps fitting and filling its outbox. A finite source ends
 when the outbox is empty.
 """
@@ -61,6 +63,8 @@ class Agent:
         self.refused: Rejection | None = None  # the server's last refusal for good, if any
         self.unsent = 0  # scans not published because of a refusal
         self.resumed = 0  # scans a previous run of this outbox got through (or left held): not fitted again
+        self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
+        self._rttvar = 0.0
         self._stop = threading.Event()
         self._connector = threading.Thread(target=self._connect, args=(config,), name="gmmap-connect", daemon=True)
         self._resender = threading.Thread(target=self._resend_loop, name="gmmap-resend", daemon=True)
@@ -114,10 +118,23 @@ class Agent:
         while not self._stop.wait(self.options.resend_s / 2):
             if self.session is None:
                 continue
-            due = self.outbox.due(time.time() - self.options.resend_s)
+            due = self.outbox.due(time.time(), self.resend_timeout())
             if due:
                 log.info("sending %d unacknowledged messages again", len(due))
                 self._publish(due)
+
+    def resend_timeout(self) -> float:
+        """Seconds an unanswered message waits before its second sending."""
+        if self._srtt is None:
+            return self.options.resend_s
+        return max(self.options.resend_s, self._srtt + 4 * self._rttvar)
+
+    def _measured(self, round_trip: float) -> None:
+        if self._srtt is None:
+            self._srtt, self._rttvar = round_trip, round_trip / 2
+        else:
+            self._rttvar = 0.75 * self._rttvar + 0.25 * abs(self._srtt - round_trip)
+            self._srtt = 0.875 * self._srtt + 0.125 * round_trip
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
@@ -135,7 +152,8 @@ class Agent:
                           answer.reason, answer.detail)
             self.refused = answer
         else:
-            self.outbox.acknowledge(answer.kind, answer.ids)
+            for round_trip in self.outbox.acknowledge(answer.kind, answer.ids):
+                self._measured(round_trip)
         with self._changed:
             self._changed.notify_all()
 

@@ -14,6 +14,8 @@ import threading
 import time
 from pathlib import Path
 
+MAX_BACKOFF_S = 30.0  # the longest a held message waits between two sendings
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS outbox (
     kind TEXT NOT NULL, id INTEGER NOT NULL, key TEXT NOT NULL, raw BLOB NOT NULL,
@@ -68,15 +70,23 @@ class Outbox:
             self._db.executemany("UPDATE outbox SET sent = ?, attempts = attempts + 1 WHERE kind = ? AND id = ?",
                                  [(time.time(), kind, ident) for kind, ident in items])
 
-    def acknowledge(self, kind: str, ids: tuple[int, ...]) -> int:
-        """Drop acknowledged messages; returns how many were still held."""
+    def acknowledge(self, kind: str, ids: tuple[int, ...]) -> list[float]:
+        """Drop acknowledged messages; returns the round-trip times (s) of those sent exactly once.
+
+        A message sent more than once says nothing about the round trip: its Ack may answer
+        either sending (Karn's rule).
+        """
         now = time.time()
         with self._lock, self._db:
-            removed = sum(self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ?", (kind, i)).rowcount
-                          for i in ids)
+            round_trips = []
+            for i in ids:
+                row = self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts",
+                                       (kind, i)).fetchone()
+                if row is not None and row[1] == 1:
+                    round_trips.append(now - row[0])
             self._db.executemany("INSERT OR IGNORE INTO acked VALUES (?, ?, ?)", [(kind, i, now) for i in ids])
             self._db.executemany("DELETE FROM rejected WHERE kind = ? AND id = ?", [(kind, i) for i in ids])
-        return removed
+        return round_trips
 
     def reject(self, kind: str, ids: tuple[int, ...], reason: str, detail: str) -> int:
         """Drop messages the server refused for good, keeping why; returns how many were still held."""
@@ -98,11 +108,17 @@ class Outbox:
         with self._lock:
             return {i for (i,) in self._db.execute("SELECT id FROM outbox WHERE kind = ?", (kind,))}
 
-    def due(self, older_than: float) -> list[tuple[str, int, str, bytes]]:
-        """Messages not sent since `older_than` (epoch seconds), oldest first."""
+    def due(self, now: float, timeout: float, max_timeout: float = MAX_BACKOFF_S) -> list[tuple[str, int, str, bytes]]:
+        """Messages to send again at `now` (epoch s), oldest first: never sent, or unanswered for
+        `timeout` s after their first sending, doubling after each further one up to `max_timeout`.
+
+        The back-off keeps a busy server from being buried in copies of what it is still storing.
+        """
         with self._lock:
-            return self._db.execute("SELECT kind, id, key, raw FROM outbox WHERE sent < ? ORDER BY sent, kind DESC, id",
-                                    (older_than,)).fetchall()
+            return self._db.execute(
+                "SELECT kind, id, key, raw FROM outbox WHERE attempts = 0 OR "
+                "sent + MIN(? * (1 << MIN(attempts - 1, 20)), ?) <= ? ORDER BY sent, kind DESC, id",
+                (timeout, max_timeout, now)).fetchall()
 
     def pending(self) -> int:
         with self._lock:

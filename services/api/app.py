@@ -98,7 +98,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
                            expose_headers=GRID_HEADERS)
     fmap = state.fleet_map
     viewer_html = VIEWER.read_text(encoding="utf-8")
-    synced = {"hits": 0, "misses": 0}
+    synced = {"hits": 0, "misses": 0, "updates": 0}
     sync_lock = threading.Lock()
 
     @app.exception_handler(ApiError)
@@ -237,7 +237,8 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     def metrics() -> Response:
         stats = fmap.cache_stats()
         with sync_lock:  # the map counts; the Prometheus counters follow by the difference
-            for key, counter in (("hits", state.metrics.cache_hits), ("misses", state.metrics.cache_misses)):
+            for key, counter in (("hits", state.metrics.cache_hits), ("misses", state.metrics.cache_misses),
+                                 ("updates", state.metrics.cache_updates)):
                 if stats[key] > synced[key]:
                     counter.inc(stats[key] - synced[key])
                     synced[key] = stats[key]

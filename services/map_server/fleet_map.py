@@ -2,8 +2,13 @@
 per-robot pose graph, and occupancy reconstructed on demand for any region and resolution.
 
 A pose-graph update changes node poses only: components and their cached samples stay in the
-node frame and are moved by the world pose when traced (Eq. 2), never refitted. Cached tiles
-are dropped only where a moved or new node can reach.
+node frame and are moved by the world pose when traced (Eq. 2), never refitted.
+
+A cached tile keeps its hit and miss counts and the (node, pose) pairs they hold. A new or
+moved node only marks the tiles it can reach stale; the next query of such a tile traces the
+difference: new nodes added, moved nodes subtracted at their old pose and added at the new
+one. Counts are sums of quantised weights (gmm_core.sampling), exact in float64, so an updated
+tile has the bytes a fresh reconstruction would have.
 """
 from __future__ import annotations
 
@@ -22,7 +27,7 @@ from gmm_core.sampling import scan_rays, scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
-TILE_CACHE_ENTRIES = 256
+TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
 
 
 def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
@@ -58,6 +63,7 @@ class Node:
     local_lo: np.ndarray
     local_hi: np.ndarray
     corrected: Pose | None = None  # from the newest pose-graph update
+    pose_rev: int = 0  # bumped whenever `corrected` changes
 
 
 @dataclass
@@ -65,6 +71,7 @@ class Robot:
     nodes: dict[int, Node] = field(default_factory=dict)
     pending: dict[int, Pose] = field(default_factory=dict)  # corrections for nodes not received yet
     anchor: Pose | None = None  # robot map frame -> world
+    anchor_rev: int = 0  # bumped whenever `anchor` changes
     revision: int = -1
     bytes_received: int = 0
     last_seen: float = 0.0
@@ -73,6 +80,28 @@ class Robot:
     def world_pose(self, node: Node) -> Pose:
         pose = node.corrected or node.estimate
         return self.anchor.compose(pose) if self.anchor is not None else pose
+
+    def stamp(self, node: Node) -> tuple[int, int]:
+        """Changes whenever the node's world pose may have."""
+        return node.pose_rev, self.anchor_rev
+
+
+@dataclass
+class Tile:
+    """A cached query: counts of the nodes in `held`, and p(occupied) while nothing changed."""
+
+    grid: Grid
+    hits: np.ndarray  # float64, exact sums
+    misses: np.ndarray
+    held: dict = field(default_factory=dict)  # (robot, node) -> (stamp, node, world pose) counted in
+    changes: int = 0  # bumped when a new or moved node may reach the tile
+    prob: np.ndarray | None = None
+    prob_at: int = -1  # `changes` when `prob` was computed
+    lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
+
+    @property
+    def nbytes(self) -> int:
+        return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
 
 
 class FleetMap:
@@ -87,14 +116,14 @@ class FleetMap:
         self._robots: dict[str, Robot] = {}
         self._lock = threading.RLock()
         self._trace_lock = threading.Lock()  # sample cache and numba kernels
-        self._version = 0  # bumped by every change a tile could see
-        self._in_flight: dict = {}  # tile key -> lock held while that tile is traced
         self._index: tuple[list[tuple[str, int]], np.ndarray, np.ndarray] | None = None
         self._samples: OrderedDict = OrderedDict()
         self._sample_rays = 0
-        self._tiles: OrderedDict = OrderedDict()
+        self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
+        self._tile_bytes = 0
         self._cache_hits = 0
         self._cache_misses = 0
+        self._cache_updates = 0
 
     # -- ingest ---------------------------------------------------------------------------
     def add_scan(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
@@ -132,6 +161,7 @@ class FleetMap:
             if update.anchor is not None:
                 moved = list(robot.nodes.values())  # a new anchor moves every node of the robot
                 robot.anchor, old_anchor = update.anchor, robot.anchor
+                robot.anchor_rev += 1
             else:
                 moved, old_anchor = [], robot.anchor
             old_poses = {id(n): n.corrected or n.estimate for n in moved}
@@ -143,6 +173,7 @@ class FleetMap:
                                                     and np.array_equal(node.corrected.t, pose.t)):
                     old_poses.setdefault(id(node), node.corrected or node.estimate)
                     node.corrected = pose
+                    node.pose_rev += 1
                     moved.append(node)
             robot.revision = update.revision
             moved = list({id(n): n for n in moved}.values())
@@ -155,12 +186,11 @@ class FleetMap:
             return True
 
     def _changed(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Forget the node index and every cached tile that one of the boxes (lo, hi) reaches."""
+        """Forget the node index; mark stale every cached tile that one of the boxes (lo, hi) reaches."""
         self._index = None
-        self._version += 1
-        for key in [k for k, (g_lo, g_hi, _) in self._tiles.items()
-                    if np.any(np.all(lo <= g_hi, axis=1) & np.all(hi >= g_lo, axis=1))]:
-            del self._tiles[key]
+        for tile in self._tiles.values():
+            if np.any(np.all(lo <= tile.grid.upper, axis=1) & np.all(hi >= tile.grid.origin, axis=1)):
+                tile.changes += 1
 
     # -- queries --------------------------------------------------------------------------
     def _node_index(self):
@@ -196,66 +226,95 @@ class FleetMap:
             self._samples.move_to_end(key)
         return rays
 
-    def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Hit and miss evidence on `grid` from the nodes that can reach it (all robots or `robots`)."""
-        with self._lock:  # a snapshot of the reaching nodes and their world poses
-            if self.dim is not None and grid.dim != self.dim:
-                raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
-            keys, lo, hi = self._node_index()
-            reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1) if keys else []
-            wanted = None if robots is None else set(robots)
-            posed = []
-            for i in np.flatnonzero(reach):
-                name, node_id = keys[i]
-                if wanted is None or name in wanted:
-                    robot = self._robots[name]
-                    node = robot.nodes[node_id]
-                    posed.append((name, node_id, node, robot.world_pose(node)))
+    def _reaching(self, grid: Grid, robots: Sequence[str] | None) -> dict:
+        """(robot, node) -> (stamp, node, world pose) of every node that can reach `grid`. Under the lock."""
+        if self.dim is not None and grid.dim != self.dim:
+            raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
+        keys, lo, hi = self._node_index()
+        if not keys:
+            return {}
+        reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1)
+        wanted = None if robots is None else set(robots)
+        posed = {}
+        for i in np.flatnonzero(reach):
+            name, node_id = keys[i]
+            if wanted is None or name in wanted:
+                robot = self._robots[name]
+                node = robot.nodes[node_id]
+                posed[name, node_id] = (robot.stamp(node), node, robot.world_pose(node))
+        return posed
+
+    def _trace(self, grid: Grid, plus: list, minus: list) -> tuple[np.ndarray, np.ndarray]:
+        """Exact float64 counts of the nodes in `plus` less those in `minus`: ((robot, node), node, pose) each."""
 
         def groups():
-            for name, node_id, node, pose in posed:
-                ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
-                if len(ends):
-                    yield pose.apply(node.model.origin[None])[0], pose.apply(ends), weights, is_hit
+            for sign, entries in ((1.0, plus), (-1.0, minus)):
+                for (name, node_id), node, pose in entries:
+                    ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
+                    if len(ends):
+                        yield pose.apply(node.model.origin[None])[0], pose.apply(ends), sign * weights, is_hit
 
         with self._trace_lock:
-            return trace_groups(grid, groups(), None)
+            return trace_groups(grid, groups(), None, dtype=np.float64)
+
+    def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Hit and miss evidence (float32) on `grid` from the nodes that can reach it (all robots or `robots`)."""
+        with self._lock:  # a snapshot of the reaching nodes and their world poses
+            posed = self._reaching(grid, robots)
+        hits, misses = self._trace(grid, [(key, node, pose) for key, (_, node, pose) in posed.items()], [])
+        return hits.astype(np.float32), misses.astype(np.float32)
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
-        """p(occupied) on `grid`, Eq. 11; cached until a node that reaches the grid changes.
+        """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed.
 
-        Concurrent requests for the same cold tile trace it once: the others wait for it.
+        Concurrent requests for the same tile wait for one update of it.
         """
         key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
         with self._lock:
-            in_flight = self._in_flight.setdefault(key, threading.Lock())
-        with in_flight:
+            tile = self._tiles.get(key)
+            if tile is None:
+                tile = Tile(grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape))
+                self._tiles[key] = tile
+                self._tile_bytes += tile.nbytes
+                self._evict()
+            self._tiles.move_to_end(key)
+        with tile.lock:
             with self._lock:
-                cached = self._tiles.get(key)
-                if cached is not None:
-                    self._tiles.move_to_end(key)
+                if tile.prob_at == tile.changes:
                     self._cache_hits += 1
-                    return cached[2]
-                self._cache_misses += 1
-                version = self._version
-            try:
-                prob = map_estimate(*self.counts(grid, robots), self.prior)
-            finally:
-                with self._lock:
-                    self._in_flight.pop(key, None)
+                    return tile.prob
+                changes = tile.changes
+                posed = self._reaching(grid, robots)
+            held = tile.held
+            stale = [(k, old[1], old[2]) for k, old in held.items() if k not in posed or posed[k][0] != old[0]]
+            new = [(k, node, pose) for k, (stamp, node, pose) in posed.items()
+                   if k not in held or held[k][0] != stamp]
+            if new or stale:
+                hits, misses = self._trace(grid, new, stale)
+                tile.hits += hits  # only after the trace succeeded: a failed one leaves the tile as it was
+                tile.misses += misses
+                tile.held = posed
+            prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
             with self._lock:
-                # A change while this tile was traced may not be in it: serve it, do not keep it.
-                if self._version == version:
-                    self._tiles[key] = (grid.origin, grid.upper, prob)
-                    while len(self._tiles) > TILE_CACHE_ENTRIES:
-                        self._tiles.popitem(last=False)
+                # A change after the snapshot bumped `changes`: the next query updates again.
+                tile.prob, tile.prob_at = prob, changes
+                if held:
+                    self._cache_updates += 1
+                else:
+                    self._cache_misses += 1
             return prob
+
+    def _evict(self) -> None:
+        """Drop least recently used tiles over TILE_CACHE_BYTES (always keeping the newest)."""
+        while self._tile_bytes > TILE_CACHE_BYTES and len(self._tiles) > 1:
+            _, old = self._tiles.popitem(last=False)
+            self._tile_bytes -= old.nbytes
 
     def cache_stats(self) -> dict:
         with self._lock:
-            return {"hits": self._cache_hits, "misses": self._cache_misses, "tiles": len(self._tiles),
-                    "sample_rays": self._sample_rays}
+            return {"hits": self._cache_hits, "misses": self._cache_misses, "updates": self._cache_updates,
+                    "tiles": len(self._tiles), "tile_bytes": self._tile_bytes, "sample_rays": self._sample_rays}
 
     def robots(self) -> list[dict]:
         with self._lock:

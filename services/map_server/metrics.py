@@ -35,7 +35,9 @@ class ServerMetrics:
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.15, 0.25, 0.5, 1, 2.5, 5),
         )
         self.cache_hits = Counter("gmmap_cache_hits", "Tile cache hits", registry=r)
-        self.cache_misses = Counter("gmmap_cache_misses", "Tile cache misses", registry=r)
+        self.cache_misses = Counter("gmmap_cache_misses", "Tile cache misses (traced from scratch)", registry=r)
+        self.cache_updates = Counter("gmmap_cache_updates", "Stale cached tiles brought up to date (only new or "
+                                     "moved scans traced)", registry=r)
 
     def render(self) -> bytes:
         """The registry in Prometheus text exposition format."""
