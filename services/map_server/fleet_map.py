@@ -104,6 +104,42 @@ class Tile:
         return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
 
 
+class NodeIndex:
+    """World boxes of every node: a row appended as each scan arrives, rewritten when it moves."""
+
+    def __init__(self, dim: int):
+        self.keys: list[tuple[str, int]] = []
+        self._rows: dict[tuple[str, int], int] = {}
+        self._lo = np.empty((1024, dim))
+        self._hi = np.empty((1024, dim))
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def put(self, keys: Sequence[tuple[str, int]], lo: np.ndarray, hi: np.ndarray) -> None:
+        rows = np.empty(len(keys), dtype=np.int64)
+        for i, key in enumerate(keys):
+            row = self._rows.get(key)
+            if row is None:
+                row = self._rows[key] = len(self.keys)
+                self.keys.append(key)
+            rows[i] = row
+        if len(self.keys) > len(self._lo):
+            grow = ((0, len(self._lo)), (0, 0))
+            self._lo, self._hi = np.pad(self._lo, grow), np.pad(self._hi, grow)
+        self._lo[rows], self._hi[rows] = lo, hi
+
+    def reaching(self, lo: np.ndarray, hi: np.ndarray) -> list[tuple[str, int]]:
+        """Keys of the nodes whose box meets the box (lo, hi)."""
+        n = len(self.keys)
+        meets = np.all(self._lo[:n] <= hi, axis=1) & np.all(self._hi[:n] >= lo, axis=1)
+        return [self.keys[i] for i in np.flatnonzero(meets)]
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        n = len(self.keys)
+        return (self._lo[:n].min(axis=0), self._hi[:n].max(axis=0)) if n else None
+
+
 class FleetMap:
     """Thread-safe. A short lock guards the state; a second one serialises sampling and ray
     tracing (numba's kernels run one at a time), so ingest never waits behind a cold tile."""
@@ -116,11 +152,12 @@ class FleetMap:
         self._robots: dict[str, Robot] = {}
         self._lock = threading.RLock()
         self._trace_lock = threading.Lock()  # sample cache and numba kernels
-        self._index: tuple[list[tuple[str, int]], np.ndarray, np.ndarray] | None = None
+        self._index: NodeIndex | None = None  # from the first scan on
         self._samples: OrderedDict = OrderedDict()
         self._sample_rays = 0
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
         self._tile_bytes = 0
+        self._tile_boxes: tuple[list[Tile], np.ndarray, np.ndarray] | None = None  # while the tile set is unchanged
         self._cache_hits = 0
         self._cache_misses = 0
         self._cache_updates = 0
@@ -131,6 +168,7 @@ class FleetMap:
         with self._lock:
             if self.dim is None:
                 self.dim = msg.dim
+                self._index = NodeIndex(msg.dim)
             elif msg.dim != self.dim:
                 raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
             robot = self._robots.setdefault(msg.robot, Robot())
@@ -143,7 +181,9 @@ class FleetMap:
                         corrected=robot.pending.pop(msg.node, None))
             robot.nodes[msg.node] = node
             robot.components += msg.model.n_components
-            self._changed(*world_boxes([node.corrected or node.estimate], lo[None], hi[None], robot.anchor))
+            world_lo, world_hi = world_boxes([node.corrected or node.estimate], lo[None], hi[None], robot.anchor)
+            self._index.put([(msg.robot, msg.node)], world_lo, world_hi)
+            self._changed(world_lo, world_hi)
             return True
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
@@ -182,35 +222,25 @@ class FleetMap:
                 hi = np.array([n.local_hi for n in moved])
                 old_lo, old_hi = world_boxes([old_poses[id(n)] for n in moved], lo, hi, old_anchor)
                 new_lo, new_hi = world_boxes([n.corrected or n.estimate for n in moved], lo, hi, robot.anchor)
+                ids = {id(node): node_id for node_id, node in robot.nodes.items()}
+                self._index.put([(update.robot, ids[id(n)]) for n in moved], new_lo, new_hi)
                 self._changed(np.concatenate([old_lo, new_lo]), np.concatenate([old_hi, new_hi]))
             return True
 
     def _changed(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Forget the node index; mark stale every cached tile that one of the boxes (lo, hi) reaches."""
-        self._index = None
-        for tile in self._tiles.values():
-            if np.any(np.all(lo <= tile.grid.upper, axis=1) & np.all(hi >= tile.grid.origin, axis=1)):
-                tile.changes += 1
+        """Mark stale every cached tile that one of the boxes (lo, hi) reaches."""
+        if self._tile_boxes is None:
+            tiles = list(self._tiles.values())
+            d = self.dim or 2
+            self._tile_boxes = (tiles, np.array([t.grid.origin for t in tiles]).reshape(-1, d),
+                                np.array([t.grid.upper for t in tiles]).reshape(-1, d))
+        tiles, tiles_lo, tiles_hi = self._tile_boxes
+        reached = np.any(np.all(lo[:, None] <= tiles_hi[None], axis=2) & np.all(hi[:, None] >= tiles_lo[None], axis=2),
+                         axis=0)
+        for i in np.flatnonzero(reached):
+            tiles[i].changes += 1
 
     # -- queries --------------------------------------------------------------------------
-    def _node_index(self):
-        """(keys, world lo, world hi) of every node, sorted by (robot, node)."""
-        if self._index is None:
-            d = self.dim or 2
-            keys, los, his = [], [np.zeros((0, d))], [np.zeros((0, d))]
-            for name in sorted(self._robots):
-                robot = self._robots[name]
-                ids = sorted(robot.nodes)
-                nodes = [robot.nodes[i] for i in ids]
-                keys += [(name, i) for i in ids]
-                lo, hi = world_boxes([n.corrected or n.estimate for n in nodes],
-                                     np.array([n.local_lo for n in nodes]).reshape(-1, d),
-                                     np.array([n.local_hi for n in nodes]).reshape(-1, d), robot.anchor)
-                los.append(lo)
-                his.append(hi)
-            self._index = (keys, np.concatenate(los), np.concatenate(his))
-        return self._index
-
     def _node_rays(self, robot: str, node_id: int, node: Node, resolution: float):
         """Node-frame samples for this resolution, drawn once and kept (deterministic by seed)."""
         key = (robot, node_id, resolution)
@@ -228,21 +258,21 @@ class FleetMap:
 
     def _reaching(self, grid: Grid, robots: Sequence[str] | None) -> dict:
         """(robot, node) -> (stamp, node, world pose) of every node that can reach `grid`. Under the lock."""
-        if self.dim is not None and grid.dim != self.dim:
-            raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
-        keys, lo, hi = self._node_index()
-        if not keys:
+        self._check_dim(grid)
+        if self._index is None:
             return {}
-        reach = np.all(lo <= grid.upper, axis=1) & np.all(hi >= grid.origin, axis=1)
         wanted = None if robots is None else set(robots)
         posed = {}
-        for i in np.flatnonzero(reach):
-            name, node_id = keys[i]
+        for name, node_id in self._index.reaching(grid.origin, grid.upper):
             if wanted is None or name in wanted:
                 robot = self._robots[name]
                 node = robot.nodes[node_id]
                 posed[name, node_id] = (robot.stamp(node), node, robot.world_pose(node))
         return posed
+
+    def _check_dim(self, grid: Grid) -> None:
+        if self.dim is not None and grid.dim != self.dim:
+            raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
 
     def _trace(self, grid: Grid, plus: list, minus: list) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 counts of the nodes in `plus` less those in `minus`: ((robot, node), node, pose) each."""
@@ -271,11 +301,13 @@ class FleetMap:
         """
         key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
         with self._lock:
+            self._check_dim(grid)
             tile = self._tiles.get(key)
             if tile is None:
                 tile = Tile(grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape))
                 self._tiles[key] = tile
                 self._tile_bytes += tile.nbytes
+                self._tile_boxes = None
                 self._evict()
             self._tiles.move_to_end(key)
         with tile.lock:
@@ -310,6 +342,7 @@ class FleetMap:
         while self._tile_bytes > TILE_CACHE_BYTES and len(self._tiles) > 1:
             _, old = self._tiles.popitem(last=False)
             self._tile_bytes -= old.nbytes
+            self._tile_boxes = None
 
     def cache_stats(self) -> dict:
         with self._lock:
@@ -334,5 +367,4 @@ class FleetMap:
     def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
         """World box of every node's reach, or None for an empty map."""
         with self._lock:
-            keys, lo, hi = self._node_index()
-            return (lo.min(axis=0), hi.max(axis=0)) if keys else None
+            return self._index.extent() if self._index is not None else None
