@@ -92,7 +92,7 @@ def _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
             misses[flat] += w
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)  # a map server keeps ingesting while a tile is traced
 def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):
     n_cells = dims[0] * dims[1] * dims[2]
     hits = np.zeros((n_chunks, n_cells))
