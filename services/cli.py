@@ -121,7 +121,7 @@ def cmd_server(args) -> int:
     return run_server(ServerOptions(
         fleet=args.fleet, zenoh_listen=tuple(e for e in args.zenoh_listen or () if e), zenoh_connect=tuple(args.zenoh_connect or ()),
         zenoh_config=args.zenoh_config, http=args.http or None, data_dir=args.data_dir,
-        synchronous=args.synchronous, robot_quota_mb=args.robot_quota_mb))
+        synchronous=args.synchronous, robot_quota_mb=args.robot_quota_mb, trace_threads=args.trace_threads))
 
 
 def cmd_router(args) -> int:
@@ -215,6 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
     p.add_argument("--robot-quota-mb", type=float, default=512.0, metavar="MIB",
                    help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
+    p.add_argument("--trace-threads", type=int, default=1, metavar="N",
+                   help="cores that trace one tile (default 1: the others keep ingest and HTTP going)")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 

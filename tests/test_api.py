@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import shutil
 import socket
 import subprocess
@@ -259,7 +260,12 @@ def test_health_metrics_docs(server):
         assert name in text, name
     hits = float(next(line.split()[1] for line in text.splitlines() if line.startswith("gmmap_cache_hits_total")))
     assert hits >= 1
-    assert get(f"{server.url}/docs")[0] == 200
+    status, _, page = get(f"{server.url}/docs")
+    assert status == 200
+    assets = re.findall(r'(?:src|href)="([^"]+)"', page.decode())
+    assert assets and all(a.startswith("/static/swagger-ui/") for a in assets), assets  # no CDN: works offline
+    for asset in assets:
+        assert get(f"{server.url}{asset}")[0] == 200, asset
     spec = json.loads(get(f"{server.url}/openapi.json")[2])
     assert "/v1/occupancy" in spec["paths"] and "/v1/robots" in spec["paths"]
     assert get(f"{server.url}/nowhere")[0] == 404
@@ -286,15 +292,27 @@ def test_viewer_is_served(server):
     assert b"<canvas" in body and b"v1/occupancy" in body and b"http" not in body.split(b"<script>")[1]
 
 
+def headless_chromium(tmp_path, *args: str) -> subprocess.CompletedProcess:
+    command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600",
+               "--hide-scrollbars", "--virtual-time-budget=8000", *args]
+    return subprocess.run(command, capture_output=True, timeout=120, check=False)
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None,
+                    reason="Debian chromium is not on PATH (make test installs it when run as root)")
+def test_api_docs_render_offline(server, tmp_path):
+    """Swagger UI's scripts come from the server itself: the page lists the API with no network beyond it."""
+    dom = headless_chromium(tmp_path, "--dump-dom", f"{server.url}/docs").stdout.decode()
+    assert "/v1/occupancy/points" in dom and "opblock" in dom, dom[-2000:]
+
+
 @pytest.mark.skipif(shutil.which("chromium") is None,
                     reason="Debian chromium is not on PATH (make test installs it when run as root)")
 def test_viewer_draws_the_map(server, tmp_path):
     shot = tmp_path / "viewer.png"
-    command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600",
-               "--hide-scrollbars", "--virtual-time-budget=8000", f"--screenshot={shot}", f"{server.url}/"]
-    subprocess.run(command, capture_output=True, timeout=120, check=False)
+    headless_chromium(tmp_path, f"--screenshot={shot}", f"{server.url}/")
     assert shot.exists(), "chromium wrote no screenshot"
     image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     assert image.shape[:2] == (600, 800)

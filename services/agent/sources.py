@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 from gmm_core import FitConfig, Pose
 from services.datasets import RangeScan, match_by_timestamp, read_scans
-from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval
+from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval, shared_fleet
 
 LOG_UPDATE_EVERY = 100  # scans between pose-graph updates of a log with --corrections
 
@@ -96,7 +96,7 @@ def simulated_nodes(source: str, scans: str | None, rate: float, update_every: i
         raise ValueError("--scans: a sim source needs A:B with 0 <= A < B, the scans of its run to publish "
                          "(0:300 is 60 s at 5 Hz)")
     span = range(span.start or 0, span.stop)
-    fleet = SimulatedFleet(sim.world, sim.robots, span.stop, rate or DEFAULT_RATE, sim.seed)
+    fleet = shared_fleet(sim.world, sim.robots, span.stop, rate or DEFAULT_RATE, sim.seed)
     return SimulatedNodes(fleet, sim.index, span, update_every)
 
 

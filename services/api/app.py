@@ -9,18 +9,22 @@ from __future__ import annotations
 import io
 import threading
 import time
+from collections import OrderedDict
 from enum import Enum
 from pathlib import Path
 
+import fastapi_offline
 import numpy as np
 from fastapi import FastAPI, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
+from starlette.staticfiles import StaticFiles
 
 from protocol import MapReply, encode
 from services.render import occupancy_png
@@ -31,6 +35,9 @@ from .params import ApiError
 from .points import BLOCK, MAX_GRIDS, plan, point_probabilities
 
 VIEWER = Path(__file__).with_name("static") / "viewer.html"
+# Swagger UI's files as the fastapi-offline package ships them (a Swagger UI that reads OpenAPI 3.1).
+SWAGGER_FILES = Path(fastapi_offline.__file__).with_name("static")
+SWAGGER_STATIC = "/static/swagger-ui"
 GRID_HEADERS = ["X-Grid-Origin", "X-Grid-Resolution", "X-Grid-Shape"]
 
 
@@ -72,6 +79,27 @@ ERRORS = {status: {"model": ErrorBody, "description": text} for status, text in 
     (422, "A parameter is missing, malformed or over a limit; `field` names it"))}
 
 
+class EncodedTiles:
+    """Reply bodies of the newest tiles: a cached tile is the same read-only array until it
+    changes, so its PNG (the costliest part of a cached reply) is encoded once."""
+
+    def __init__(self, entries: int = 256):
+        self._entries = entries
+        self._bodies: OrderedDict[tuple, tuple[np.ndarray, bytes]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, format: Format, prob: np.ndarray) -> bytes | None:
+        with self._lock:
+            hit = self._bodies.get((format, id(prob)))
+            return hit[1] if hit is not None and hit[0] is prob else None
+
+    def put(self, format: Format, prob: np.ndarray, body: bytes) -> None:
+        with self._lock:  # the entry keeps `prob` alive, so its id is not reused while cached
+            self._bodies[format, id(prob)] = (prob, body)
+            while len(self._bodies) > self._entries:
+                self._bodies.popitem(last=False)
+
+
 def allowed_methods(app: FastAPI, scope) -> set[str]:
     """Every method that some route serves at the request's path."""
     return {m for route in app.router.routes if route.matches(scope)[0] is not Match.NONE
@@ -91,13 +119,15 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     app = FastAPI(title="gmmap map server", version="1", description=(
         "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
         "Grids follow DESIGN.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
-        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."), responses=ERRORS)
+        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."), responses=ERRORS,
+        docs_url=None, redoc_url=None)  # /docs is served below from local files: no CDN on a robot's network
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY)
     if cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
                            expose_headers=GRID_HEADERS)
     fmap = state.fleet_map
     viewer_html = VIEWER.read_text(encoding="utf-8")
+    encoded = EncodedTiles()
     synced = {"hits": 0, "misses": 0, "updates": 0}
     sync_lock = threading.Lock()
 
@@ -150,14 +180,17 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         grid = params.grid(lo, hi, res)
         selected = params.robots(robots)
         prob = occupancy_of(grid, selected)
-        if format is Format.npy:
-            buffer = io.BytesIO()
-            np.save(buffer, np.asarray(prob, dtype=np.float32))
-            body = buffer.getvalue()
-        elif format is Format.png:
-            body = occupancy_png(prob)
-        else:
-            body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
+        body = encoded.get(format, prob)
+        if body is None:
+            if format is Format.npy:
+                buffer = io.BytesIO()
+                np.save(buffer, np.asarray(prob, dtype=np.float32))
+                body = buffer.getvalue()
+            elif format is Format.png:
+                body = occupancy_png(prob)
+            else:
+                body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
+            encoded.put(format, prob, body)
         state.metrics.query_seconds.observe(time.perf_counter() - start)
         headers = {"X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
                    "X-Grid-Resolution": repr(grid.resolution),
@@ -247,5 +280,14 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     async def viewer() -> HTMLResponse:
         return HTMLResponse(viewer_html)
+
+    app.mount(SWAGGER_STATIC, StaticFiles(directory=SWAGGER_FILES), name="swagger-ui")
+
+    @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
+    async def docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} - API",
+                                   swagger_js_url=f"{SWAGGER_STATIC}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{SWAGGER_STATIC}/swagger-ui.css",
+                                   swagger_favicon_url=f"{SWAGGER_STATIC}/favicon.png")
 
     return app

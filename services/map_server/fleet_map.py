@@ -18,6 +18,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
@@ -94,6 +95,7 @@ class Tile:
     hits: np.ndarray  # float64, exact sums
     misses: np.ndarray
     held: dict = field(default_factory=dict)  # (robot, node) -> (stamp, node, world pose) counted in
+    seen: int = 0  # entries of the FleetMap's change log that `held` accounts for
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None
     prob_at: int = -1  # `changes` when `prob` was computed
@@ -135,6 +137,11 @@ class NodeIndex:
         meets = np.all(self._lo[:n] <= hi, axis=1) & np.all(self._hi[:n] >= lo, axis=1)
         return [self.keys[i] for i in np.flatnonzero(meets)]
 
+    def meets(self, keys: Sequence[tuple[str, int]], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Whether the box of each of `keys` meets the box (lo, hi)."""
+        rows = np.fromiter((self._rows[k] for k in keys), dtype=np.int64, count=len(keys))
+        return np.all(self._lo[rows] <= hi, axis=1) & np.all(self._hi[rows] >= lo, axis=1)
+
     def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
         n = len(self.keys)
         return (self._lo[:n].min(axis=0), self._hi[:n].max(axis=0)) if n else None
@@ -142,10 +149,17 @@ class NodeIndex:
 
 class FleetMap:
     """Thread-safe. A short lock guards the state; a second one serialises sampling and ray
-    tracing (numba's kernels run one at a time), so ingest never waits behind a cold tile."""
+    tracing (numba's kernels run one at a time), so ingest never waits behind a cold tile.
 
-    def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR):
+    Tiles are traced on `trace_threads` cores (default one): a server shares its cores with
+    ingest, HTTP and often robots, and numba's OpenMP threads spin at every barrier, so two
+    threads on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
+    """
+
+    def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
+                 trace_threads: int = 1):
         self.fleet = fleet
+        self.trace_threads = max(1, min(trace_threads, numba.config.NUMBA_NUM_THREADS))
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self.dim: int | None = None
@@ -153,6 +167,7 @@ class FleetMap:
         self._lock = threading.RLock()
         self._trace_lock = threading.Lock()  # sample cache and numba kernels
         self._index: NodeIndex | None = None  # from the first scan on
+        self._log: list[tuple[str, int]] = []  # (robot, node) of every node added or moved, in order
         self._samples: OrderedDict = OrderedDict()
         self._sample_rays = 0
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
@@ -183,6 +198,7 @@ class FleetMap:
             robot.components += msg.model.n_components
             world_lo, world_hi = world_boxes([node.corrected or node.estimate], lo[None], hi[None], robot.anchor)
             self._index.put([(msg.robot, msg.node)], world_lo, world_hi)
+            self._log.append((msg.robot, msg.node))
             self._changed(world_lo, world_hi)
             return True
 
@@ -223,7 +239,9 @@ class FleetMap:
                 old_lo, old_hi = world_boxes([old_poses[id(n)] for n in moved], lo, hi, old_anchor)
                 new_lo, new_hi = world_boxes([n.corrected or n.estimate for n in moved], lo, hi, robot.anchor)
                 ids = {id(node): node_id for node_id, node in robot.nodes.items()}
-                self._index.put([(update.robot, ids[id(n)]) for n in moved], new_lo, new_hi)
+                keys = [(update.robot, ids[id(n)]) for n in moved]
+                self._index.put(keys, new_lo, new_hi)
+                self._log.extend(keys)
                 self._changed(np.concatenate([old_lo, new_lo]), np.concatenate([old_hi, new_hi]))
             return True
 
@@ -270,6 +288,25 @@ class FleetMap:
                 posed[name, node_id] = (robot.stamp(node), node, robot.world_pose(node))
         return posed
 
+    def _changed_since(self, seen: int, grid: Grid, robots: Sequence[str] | None) -> dict:
+        """Nodes added or moved since change-log entry `seen`: (robot, node) -> (stamp, node, world pose)
+        where the node can reach `grid` now, else None. Under the lock.
+
+        A tile update costs what changed since the last one, not what the map holds.
+        """
+        keys = list(dict.fromkeys(self._log[seen:]))
+        if robots is not None:
+            wanted = set(robots)
+            keys = [k for k in keys if k[0] in wanted]
+        if not keys:
+            return {}
+        posed = {}
+        for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper)):
+            robot = self._robots[key[0]]
+            node = robot.nodes[key[1]]
+            posed[key] = (robot.stamp(node), node, robot.world_pose(node)) if reaches else None
+        return posed
+
     def _check_dim(self, grid: Grid) -> None:
         if self.dim is not None and grid.dim != self.dim:
             raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
@@ -285,6 +322,7 @@ class FleetMap:
                         yield pose.apply(node.model.origin[None])[0], pose.apply(ends), sign * weights, is_hit
 
         with self._trace_lock:
+            numba.set_num_threads(self.trace_threads)  # per calling thread
             return trace_groups(grid, groups(), None, dtype=np.float64)
 
     def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -315,26 +353,30 @@ class FleetMap:
                 if tile.prob_at == tile.changes:
                     self._cache_hits += 1
                     return tile.prob
-                changes = tile.changes
-                posed = self._reaching(grid, robots)
+                changes, seen, first = tile.changes, len(self._log), tile.prob is None
+                posed = self._changed_since(tile.seen, grid, robots)
             held = tile.held
-            stale = [(k, old[1], old[2]) for k, old in held.items() if k not in posed or posed[k][0] != old[0]]
-            new = [(k, node, pose) for k, (stamp, node, pose) in posed.items()
-                   if k not in held or held[k][0] != stamp]
+            moved = [k for k in posed if k in held and (posed[k] is None or posed[k][0] != held[k][0])]
+            new = [(k, *posed[k][1:]) for k in posed
+                   if posed[k] is not None and (k not in held or held[k][0] != posed[k][0])]
+            stale = [(k, *held[k][1:]) for k in moved]  # counted at their old pose: subtracted
             if new or stale:
                 hits, misses = self._trace(grid, new, stale)
                 tile.hits += hits  # only after the trace succeeded: a failed one leaves the tile as it was
                 tile.misses += misses
-                tile.held = posed
+                for k, *_ in stale:
+                    del held[k]
+                held.update((k, posed[k]) for k, *_ in new)
+            tile.seen = seen
             prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
             with self._lock:
                 # A change after the snapshot bumped `changes`: the next query updates again.
                 tile.prob, tile.prob_at = prob, changes
-                if held:
-                    self._cache_updates += 1
-                else:
+                if first:
                     self._cache_misses += 1
+                else:
+                    self._cache_updates += 1
             return prob
 
     def _evict(self) -> None:

@@ -42,6 +42,7 @@ class ServerOptions:
     data_dir: str = "./gmmap-data"
     synchronous: str = "NORMAL"
     robot_quota_mb: float = 512.0  # stored scan bytes per robot, MiB; 0: no quota
+    trace_threads: int = 1  # cores tracing one tile
 
 
 def query_grid(query: MapQuery) -> Grid:
@@ -145,7 +146,7 @@ def run_server(options: ServerOptions) -> int:
         signal.signal(signum, lambda *_: stop.set())
 
     store = Store(options.data_dir, synchronous=options.synchronous)
-    state = ServerState(options.fleet, FleetMap(options.fleet), store)
+    state = ServerState(options.fleet, FleetMap(options.fleet, trace_threads=options.trace_threads), store)
     zenoh_side: ZenohSide | None = None
     quota = int(options.robot_quota_mb * 2**20) if options.robot_quota_mb > 0 else None
     ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload), quota)

@@ -6,8 +6,10 @@ beams: nothing else crosses between the processes.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -18,6 +20,9 @@ from services.sim.worlds import WORLDS, make_world
 
 DEFAULT_RATE = 5.0  # scans per second when the agent publishes as fast as it can
 CORRECTION_PERIOD_S = 10.0  # a loop closure (pose-graph update) every 10 s of driving
+# Robots sharing a process (services.sim.robots) simulate one scan at a time: the world's
+# parallel numba kernels must not be entered from two threads at once (workqueue layer).
+_SIMULATING = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,12 @@ def correction_interval(rate: float) -> int:
     return max(1, round(CORRECTION_PERIOD_S * rate))
 
 
+@lru_cache(maxsize=4)
+def shared_fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> "SimulatedFleet":
+    """One SimulatedFleet per process for robots of the same run (services.sim.robots)."""
+    return SimulatedFleet(world, robots, scans, rate, seed)
+
+
 def robot_name(index: int) -> str:
     return f"r{index}"
 
@@ -80,7 +91,12 @@ class SimulatedFleet:
         scans (0: never), so it equals what the robot knows when it publishes the scan.
         """
         noise_seed = int(np.random.SeedSequence([self.seed, 11, index]).generate_state(1)[0])
-        for kind, *event in robot_events(self.world, self.sensor, self.paths[index], self.odometry[index],
-                                         rate=self.rate, correct_every=correct_every, seed=noise_seed):
+        events = robot_events(self.world, self.sensor, self.paths[index], self.odometry[index],
+                              rate=self.rate, correct_every=correct_every, seed=noise_seed)
+        while True:
+            with _SIMULATING:
+                kind, *event = next(events, (None,))
+            if kind is None:
+                return
             if kind == "scan":
                 yield event[0]

@@ -9,8 +9,15 @@ import sys
 import time
 from pathlib import Path
 
+from services.sim.fleet import SimSource
+
 ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python -m services.cli`
 SERVER_READY = "gmmap server ready"
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def free_port() -> int:
@@ -35,10 +42,11 @@ class Processes:
     def log_tail(self, name: str, chars: int = 2000) -> str:
         return self.log_path(name).read_text(errors="replace")[-chars:]
 
-    def start(self, name: str, *args: str) -> subprocess.Popen:
+    def start(self, name: str, *args: str, module: str = "services.cli", env: dict | None = None) -> subprocess.Popen:
         with open(self.log_path(name), "ab") as log:
             # A session of its own: Ctrl-C reaches the parent only, which stops the children in order.
-            proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.workdir, env=self.env,
+            proc = subprocess.Popen([sys.executable, "-m", module, *args], cwd=self.workdir,
+                                    env={**self.env, **(env or {})},
                                     stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         self.running[name] = proc
         return proc
@@ -60,6 +68,16 @@ class Processes:
                           "--scans", f"0:{scans}", "--rate", f"{rate:g}",
                           "--zenoh-connect", f"tcp/127.0.0.1:{zenoh_port}",
                           "--outbox", str(self.workdir / f"outbox-{robot}.db"), *extra)
+
+    def robots(self, name: str, members: list[tuple[int, int]], source: SimSource, rate: float, scans: int,
+               fleet: str = "default", *extra: str) -> subprocess.Popen:
+        """Simulated robots (index, Zenoh port) of one fleet in one process (services.sim.robots)."""
+        return self.start(name, *(f"{i}:{port}" for i, port in members), "--world", source.world,
+                          "--robots", str(source.robots), "--seed", str(source.seed), "--fleet", fleet,
+                          "--scans", str(scans), "--rate", f"{rate:g}", "--workdir", str(self.workdir), *extra,
+                          # One numba thread per process: robots fit and simulate one scan at a time,
+                          # and idle OpenMP threads would spin on the cores the server needs.
+                          module="services.sim.robots", env={"NUMBA_NUM_THREADS": "1"})
 
     def reap(self, name: str, block: bool = False) -> int | None:
         """The child's exit code once it has ended (its CPU time noted), else None."""

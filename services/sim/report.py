@@ -30,7 +30,6 @@ from __future__ import annotations
 import importlib.util
 import itertools
 import json
-import os
 from collections import defaultdict
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -44,6 +43,7 @@ from protocol import ScanMessage, decode
 from services.datasets.common import RangeScan
 from services.map_server.fleet_map import FleetMap
 from services.sim.fleet import robot_name
+from services.sim.processes import cpu_cores
 from services.sim.run import RunRecord, slabs
 from services.sim.trajectory import path_pose
 
@@ -257,10 +257,6 @@ def grade(record: RunRecord) -> Grading:
     }
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
     return Grading(report, per_scan, maps, t0)
-
-
-def cpu_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def write_report(grading: Grading, record: RunRecord, out: Path) -> None:

@@ -1,6 +1,7 @@
 """`gmmap sim`: a simulated fleet over real Zenoh, measured while it runs.
 
-One map server and one agent per robot run as processes on 127.0.0.1 (scouting off). Each
+One map server and the robots run as processes on 127.0.0.1 (scouting off): each robot is a
+full agent (Zenoh session, outbox), several to a process (services.sim.robots). Each
 agent reaches the server through a CountingRelay (its link, bytes counted both ways); a Zenoh
 client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
 the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles. When
@@ -29,7 +30,7 @@ import numpy as np
 from gmm_core import Grid
 from services.api.params import MAX_CELLS
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
-from services.sim.processes import Processes, free_port
+from services.sim.processes import Processes, cpu_cores, free_port
 from services.sim.relay import CountingRelay
 from services.sim.tap import WireEvent, WireTap
 
@@ -177,6 +178,12 @@ class TileClients:
         return answer
 
 
+def robot_groups(robots: int) -> list[list[int]]:
+    """Robot indices per agent process (services.sim.robots): as many processes as cores, at most."""
+    processes = min(robots, cpu_cores())
+    return [list(range(g, robots, processes)) for g in range(processes)]
+
+
 def published_scans(outbox: Path) -> int:
     """Scans the agent sent: acknowledged ones plus any still waiting in its outbox."""
     db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
@@ -218,11 +225,15 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         # around the link; a robot's radio link has no such shortcut.
         no_shm = workdir / "agent-zenoh.json5"
         no_shm.write_text('{transport: {shared_memory: {enabled: false}}}')
-        for i, name in enumerate(names):
+        for name in names:
             relays[name] = CountingRelay(zport)
-            fit = ("--component-size", f"{o.component_size:g}") if o.component_size else ()
-            procs.agent(name, str(SimSource(o.world, i, o.robots, o.seed)), relays[name].port, o.rate, o.scans,
-                        o.fleet, "--zenoh-config", str(no_shm), *fit)
+        fit = ("--component-size", f"{o.component_size:g}") if o.component_size else ()
+        groups = robot_groups(o.robots)
+        for g, members in enumerate(groups):
+            procs.robots(f"robots-{g}", [(i, relays[names[i]].port) for i in members],
+                         SimSource(o.world, 0, o.robots, o.seed), o.rate, o.scans, o.fleet,
+                         "--zenoh-config", str(no_shm), *fit)
+        group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
         if o.http_clients:
             clients = TileClients(tile_urls(base, grid), o.http_clients)
 
@@ -243,7 +254,7 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         total = o.robots * o.scans
         with tqdm(total=total, desc="published", unit="scan", file=sys.stderr) as published, \
                 tqdm(total=total, desc="stored", unit="scan", file=sys.stderr) as stored:
-            while any(procs.reap(f"agent-{n}") is None for n in names) and time.monotonic() < deadline:
+            while any(procs.reap(g) is None for g in set(group_of.values())) and time.monotonic() < deadline:
                 if stored.n and time.monotonic() >= next_snapshot:
                     next_snapshot = time.monotonic() + max(every, 3 * snapshot())
                 published.n, stored.n = tap.counts()
@@ -254,11 +265,11 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         if clients is not None:
             record.tile_latencies, record.tile_errors = clients.stop()
             clients = None
-        for name in names:
-            code = procs.stop(f"agent-{name}", timeout=5)  # only one past the deadline is still running
-            record.agent_exit[name] = code
+        for g in sorted(set(group_of.values())):
+            code = procs.stop(g, timeout=5)  # only one past the deadline is still running
             if code != 0:
-                print(f"gmmap sim: agent {name} exited {code}:\n{procs.log_tail(f'agent-{name}')}", file=sys.stderr)
+                print(f"gmmap sim: the robots of {g} exited {code}:\n{procs.log_tail(g)}", file=sys.stderr)
+        record.agent_exit = {name: procs.running[g].returncode for name, g in group_of.items()}
         snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
         with urllib.request.urlopen(f"{base}/v1/robots", timeout=30) as response:
             record.components = {r["robot"]: r["components"] for r in json.loads(response.read())}
@@ -270,7 +281,7 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         record.stored = stored_scans(workdir / "data", o.fleet)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         record.cpu_s = {"server": procs.cpu_s["server"],
-                        "agents": sum(procs.cpu_s[f"agent-{n}"] for n in names),
+                        "agents": sum(procs.cpu_s[g] for g in set(group_of.values())),
                         "harness": usage.ru_utime + usage.ru_stime - cpu_before}
         return record
     finally:
