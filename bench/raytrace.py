@@ -10,8 +10,9 @@ maxrange, fed a prefix of the same rays as 3 scans of 10^5 points into a fresh t
 Per scan it ray-traces every point with computeRayKeys into a hash set of free keys plus a set of end-point
 keys, then updates each distinct key once by descending its 16-level octree. That dedup makes its
 rays/s depend on how densely a scan's rays overlap; ours adds to every crossed cell of every ray.
-Random directions are the worst case for our cache; "beam order" rows trace the same 3D rays
-sorted as a 64-ring spinning lidar emits them (ring, then azimuth), for ours only.
+On grids too big for the cache ours sorts the rays by the block their end point falls in
+(inside the timed call); "beam order" rows trace the same 3D rays sorted as a 64-ring spinning
+lidar emits them (ring, then azimuth), for ours only.
 """
 import os
 

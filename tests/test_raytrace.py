@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from gmm_core import Grid
+from gmm_core import raytrace
 from gmm_core.raytrace import trace_rays
 
 
@@ -65,3 +66,37 @@ def test_free_rays_add_only_misses_and_counts_are_additive():
     b = trace_rays(grid, args[0], args[1][100:], ends[100:], args[3][100:], np.ones(200, bool))
     whole = trace_rays(grid, *args, np.ones(300, bool))
     assert np.allclose(a[0] + b[0], whole[0]) and np.allclose(a[1] + b[1], whole[1])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("big", [False, True], ids=["in-cache", "sorted"])
+def test_chunks_match_brute_force_and_each_other(dim, big):
+    """Chunked tracing (one per numba thread) on small grids and on grids big enough that rays are
+    sorted by end block and chunks fill slab buffers: brute-force counts for any chunk count."""
+    rng = np.random.default_rng(10 + dim)
+    side = (raytrace.SORT_MIN_CELLS ** (1 / dim) + 1 if big else 9)
+    grid = Grid(np.full(dim, -2.0), 4.0 / side, (int(side),) * dim)
+    assert (grid.n_cells >= raytrace.SORT_MIN_CELLS) == big
+    origins = rng.uniform(-3, 3, (4, dim))
+    ray_origin = rng.integers(0, 4, 300)
+    ends = rng.uniform(-3, 3, (300, dim))
+    weights = rng.uniform(0.5, 2, 300)
+    is_hit = rng.random(300) < 0.7
+    slow = brute_force(grid, origins, ray_origin, ends, weights, is_hit)
+    counts = [chunked(grid, origins, ray_origin, ends, weights, is_hit, n) for n in (1, 2, 3, 7)]
+    for hits, misses in counts:
+        assert np.allclose(hits, slow[0], atol=1e-4) and np.allclose(misses, slow[1], atol=1e-4)
+        assert np.allclose(hits, counts[0][0], rtol=1e-7) and np.allclose(misses, counts[0][1], rtol=1e-7)
+    again = chunked(grid, origins, ray_origin, ends, weights, is_hit, 3)
+    assert np.array_equal(again[0], counts[2][0]) and np.array_equal(again[1], counts[2][1])
+
+
+def chunked(grid, origins, ray_origin, ends, weights, is_hit, n_chunks):
+    """`trace_rays` with the rays split into n_chunks, whatever the machine's thread count."""
+    d = grid.dim
+    z = grid.resolution / 2
+    dims = np.array(list(grid.shape) + [1] * (3 - d))
+    hits, misses = raytrace._trace(raytrace._as_3d(origins, d, z), ray_origin, raytrace._as_3d(ends, d, z),
+                                   weights, is_hit, raytrace._as_3d(grid.origin, d, 0.0)[0],
+                                   grid.resolution, dims, n_chunks)
+    return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
