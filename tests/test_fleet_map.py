@@ -125,6 +125,21 @@ def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted):
     assert served.cache_stats()["misses"] == 1 and served.cache_stats()["updates"] == 3
 
 
+def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f")
+    for s, m in zip(scans[:60:2], models[:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    before = fleet.occupancy(GRID)
+    for s, m in zip(scans[1:60:2], models[1:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    (tile,) = fleet._tiles.values()
+    with tile.lock:  # as if another request were updating it now
+        assert fleet.occupancy(GRID) is before and fleet.cache_stats()["stale"] == 1
+    after = fleet.occupancy(GRID)  # the next lone request brings it up to date
+    assert not np.array_equal(after, before) and np.array_equal(after, offline(scans[:60], models[:60], "r1"))
+
+
 def test_query_touches_only_nodes_that_reach_it(fitted):
     scans, models = fitted
     fleet = FleetMap("f")

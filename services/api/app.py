@@ -128,7 +128,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     fmap = state.fleet_map
     viewer_html = VIEWER.read_text(encoding="utf-8")
     encoded = EncodedTiles()
-    synced = {"hits": 0, "misses": 0, "updates": 0}
+    synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0}
     sync_lock = threading.Lock()
 
     @app.exception_handler(ApiError)
@@ -271,7 +271,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         stats = fmap.cache_stats()
         with sync_lock:  # the map counts; the Prometheus counters follow by the difference
             for key, counter in (("hits", state.metrics.cache_hits), ("misses", state.metrics.cache_misses),
-                                 ("updates", state.metrics.cache_updates)):
+                                 ("updates", state.metrics.cache_updates), ("stale", state.metrics.cache_stale)):
                 if stats[key] > synced[key]:
                     counter.inc(stats[key] - synced[key])
                     synced[key] = stats[key]

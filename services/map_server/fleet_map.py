@@ -16,6 +16,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numba
@@ -106,6 +107,15 @@ class Tile:
         return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
 
 
+@contextmanager
+def _held(lock: threading.Lock):
+    """Release a lock that is already acquired when the block ends."""
+    try:
+        yield
+    finally:
+        lock.release()
+
+
 class NodeIndex:
     """World boxes of every node: a row appended as each scan arrives, rewritten when it moves."""
 
@@ -176,6 +186,7 @@ class FleetMap:
         self._cache_hits = 0
         self._cache_misses = 0
         self._cache_updates = 0
+        self._cache_stale = 0  # answered with the previous tile while it was being updated
 
     # -- ingest ---------------------------------------------------------------------------
     def add_scan(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
@@ -335,7 +346,10 @@ class FleetMap:
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed.
 
-        Concurrent requests for the same tile wait for one update of it.
+        While one request updates a tile, concurrent requests for it are answered with the tile as
+        it was before that update (when there is one) rather than queue behind it: a viewer polling
+        a busy map gets its tiles at once, one update late at most. A lone query always sees every
+        change applied before it.
         """
         key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
         with self._lock:
@@ -348,7 +362,14 @@ class FleetMap:
                 self._tile_boxes = None
                 self._evict()
             self._tiles.move_to_end(key)
-        with tile.lock:
+        if not tile.lock.acquire(blocking=False):
+            with self._lock:
+                previous = tile.prob
+                if previous is not None:
+                    self._cache_stale += 1
+                    return previous
+            tile.lock.acquire()
+        with _held(tile.lock):
             with self._lock:
                 if tile.prob_at == tile.changes:
                     self._cache_hits += 1
@@ -389,6 +410,7 @@ class FleetMap:
     def cache_stats(self) -> dict:
         with self._lock:
             return {"hits": self._cache_hits, "misses": self._cache_misses, "updates": self._cache_updates,
+                    "stale": self._cache_stale,
                     "tiles": len(self._tiles), "tile_bytes": self._tile_bytes, "sample_rays": self._sample_rays}
 
     def robots(self) -> list[dict]:

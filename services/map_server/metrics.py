@@ -38,6 +38,8 @@ class ServerMetrics:
         self.cache_misses = Counter("gmmap_cache_misses", "Tile cache misses (traced from scratch)", registry=r)
         self.cache_updates = Counter("gmmap_cache_updates", "Stale cached tiles brought up to date (only new or "
                                      "moved scans traced)", registry=r)
+        self.cache_stale = Counter("gmmap_cache_stale", "Requests answered with a tile's previous state while "
+                                   "another request updated it", registry=r)
 
     def render(self) -> bytes:
         """The registry in Prometheus text exposition format."""
