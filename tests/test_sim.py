@@ -133,6 +133,7 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
     assert 0 <= report["ingest_lag_p99_s"] < 2 and report["tile_requests"] > 0 and report["tile_errors"] == 0
     assert 0 < report["tile_latency_p99_s"] < 5
     assert set(report["per_robot"]) == {"r0", "r1"} and report["realtime_factor"] > 0
+    assert 20 < report["server_rss_start_mb"] <= report["server_rss_max_mb"] < 4096  # a Python server's RSS
     markdown = (out / "report.md").read_text()
     for png in ("bytes_over_time.png", "auroc_over_time.png", "map_vs_truth.png"):
         assert f"]({png})" in markdown

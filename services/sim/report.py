@@ -253,10 +253,22 @@ def grade(record: RunRecord) -> Grading:
         "cpu_s": {k: round(v, 2) for k, v in record.cpu_s.items()},
         "realtime_factor": o.duration * cpu_cores() / busy,
         "schedule_slip_s": max(slip, default=None),
+        **memory_growth(record.server_rss),
         "per_robot": robots, "auroc_over_time": timeline,
     }
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
     return Grading(report, per_scan, maps, t0)
+
+
+def memory_growth(rss: list[tuple[float, int]]) -> dict:
+    """Server resident memory when the robots start, at the end, at most, and the growth between."""
+    rss = [b for _, b in rss if b]
+    if not rss:
+        return {"server_rss_start_mb": None, "server_rss_end_mb": None, "server_rss_max_mb": None,
+                "server_rss_growth_mb": None}
+    mb = [b / 2**20 for b in rss]
+    return {"server_rss_start_mb": mb[0], "server_rss_end_mb": mb[-1], "server_rss_max_mb": max(mb),
+            "server_rss_growth_mb": mb[-1] - mb[0]}
 
 
 def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
@@ -323,6 +335,9 @@ def markdown(r: dict) -> str:
         ("faster than real time (simulated s x cores / CPU s of server + agents)",
          f"{_fmt(r['realtime_factor'], 3)}x"),
         ("schedule slip (last scan later than planned, s)", _fmt(r["schedule_slip_s"], 3)),
+        ("server memory (RSS) at start / end / max; growth (MiB)",
+         " / ".join(_fmt(r[f"server_rss_{k}_mb"], 4) for k in ("start", "end", "max"))
+         + f"; {_fmt(r['server_rss_growth_mb'], 3)}"),
     ]
     lines = [f"# gmmap sim: {r['world']}, {r['robots']} robot(s), {r['duration_s']:g} s at {r['rate_hz']:g} Hz",
              "", f"`{command_line(r)}`; wall time {r['wall_s']:.1f} s.", "", "| measure | value |", "|---|---|"]

@@ -85,6 +85,7 @@ class RunRecord:
     components: dict[str, int] = field(default_factory=dict)
     agent_exit: dict[str, int] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)
+    server_rss: list[tuple[float, int]] = field(default_factory=list)  # (epoch s, resident bytes) while it ran
 
 
 def evaluation_grid(fleet: SimulatedFleet) -> Grid:
@@ -178,6 +179,15 @@ class TileClients:
         return answer
 
 
+def resident_bytes(pid: int) -> int:
+    """Resident memory of a process (Linux), 0 where /proc does not say."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            return next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmRSS:"))
+    except (OSError, StopIteration):
+        return 0
+
+
 def robot_groups(robots: int) -> list[list[int]]:
     """Robot indices per agent process (services.sim.robots): as many processes as cores, at most."""
     processes = min(robots, cpu_cores())
@@ -258,6 +268,7 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
                 if stored.n and time.monotonic() >= next_snapshot:
                     next_snapshot = time.monotonic() + max(every, 3 * snapshot())
                 published.n, stored.n = tap.counts()
+                record.server_rss.append((time.time(), resident_bytes(procs.running["server"].pid)))
                 published.refresh()
                 stored.refresh()
                 time.sleep(0.2)
@@ -312,6 +323,6 @@ def run_sim(o: SimOptions) -> int:
 def summary(report: dict) -> str:
     keys = ["robots", "duration_s", "scans_published", "scans_stored", "bytes_on_wire", "raw_scan_bytes",
             "grid_delta_bytes", "octomap_delta_bytes", "components", "auroc", "auroc_before_correction",
-            "ingest_lag_p99_s", "tile_latency_p99_s", "realtime_factor"]
+            "ingest_lag_p99_s", "tile_latency_p99_s", "realtime_factor", "server_rss_growth_mb"]
     return "\n".join(f"{k:>24}: {report[k]:.4g}" if isinstance(report[k], float) else f"{k:>24}: {report[k]}"
                      for k in keys)
