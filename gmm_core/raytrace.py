@@ -208,6 +208,22 @@ def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, 
     return hits, misses
 
 
+@njit(cache=True, nogil=True)
+def _trace_serial(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims):
+    """`_trace` on the calling thread alone, outside numba's threading layer: callers that trace
+    from threads of their own (a map server's requests) need no lock around it."""
+    n_cells = dims[0] * dims[1] * dims[2]
+    if n_cells >= SORT_MIN_CELLS:
+        ray_origin, ends, weights, is_hit = _sort_rays(ray_origin, ends, weights, is_hit,
+                                                       grid_origin, resolution, dims)
+    box = np.zeros((2, 3), np.int64)
+    box[1] = dims
+    hits, misses = np.zeros(n_cells), np.zeros(n_cells)
+    _trace_chunk(origins, ray_origin, ends, weights, is_hit, 0, ends.shape[0],
+                 grid_origin, resolution, dims, box, 0, hits, misses)
+    return hits, misses
+
+
 def _as_3d(points: np.ndarray, dim: int, z: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64).reshape(-1, dim)
     if dim == 3:
@@ -216,7 +232,7 @@ def _as_3d(points: np.ndarray, dim: int, z: float) -> np.ndarray:
 
 
 def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np.ndarray,
-               weights: np.ndarray, is_hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               weights: np.ndarray, is_hit: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Hit and miss counts on `grid` from rays origins[ray_origin[r]] -> ends[r].
 
     Every cell a ray crosses inside the grid gains `weights[r]` misses, except the cell of its
@@ -224,13 +240,17 @@ def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np
     ending outside adds misses only. Returns float64 arrays of `grid.array_shape`: sums in double
     precision do not depend, to float32 precision, on how the rays were split among threads, and
     the same rays give the same sums.
+
+    `threads`: numba's threads (default: numba.get_num_threads()); 1 traces on the calling
+    thread, safe to call from several threads at once (the threading layer may not be).
     """
     d = grid.dim
     z_mid = 0.5 * grid.resolution  # 2D: rays run along the mid-plane of a one-cell-thick grid
     grid_origin = _as_3d(grid.origin, d, 0.0)[0]
     dims = np.array(list(grid.shape) + ([1] if d == 2 else []), dtype=np.int64)
-    hits, misses = _trace(_as_3d(origins, d, z_mid), np.ascontiguousarray(ray_origin, dtype=np.int64),
-                          _as_3d(ends, d, z_mid), np.ascontiguousarray(weights, dtype=np.float64),
-                          np.ascontiguousarray(is_hit, dtype=np.bool_), grid_origin, grid.resolution,
-                          dims, numba.get_num_threads())
+    rays = (_as_3d(origins, d, z_mid), np.ascontiguousarray(ray_origin, dtype=np.int64), _as_3d(ends, d, z_mid),
+            np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(is_hit, dtype=np.bool_),
+            grid_origin, grid.resolution, dims)
+    threads = threads or numba.get_num_threads()
+    hits, misses = _trace_serial(*rays) if threads == 1 else _trace(*rays, threads)
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)

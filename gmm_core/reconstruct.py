@@ -20,12 +20,12 @@ RAYS_PER_BATCH = 2_000_000  # bounds memory: rays are traced in batches and thei
 
 
 def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
-                progress: Callable[[int], None] | None, dtype=np.float32):
+                progress: Callable[[int], None] | None, dtype=np.float32, threads: int | None = None):
     """Trace groups of rays (world origin, world ends, weights, is_hit) in batches.
 
     Counts add up across batches, so memory stays bounded however many scans there are. They are
     summed in float64 and returned as `dtype`, so the map does not depend on batching or threads
-    (with sampling's quantised weights the float64 sums are exact).
+    (with sampling's quantised weights the float64 sums are exact). `threads`: as trace_rays.
     """
     hits = np.zeros(grid.array_shape)
     misses = np.zeros(grid.array_shape)
@@ -37,7 +37,7 @@ def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.nda
             origins = np.stack([b[0] for b in batch])
             ray_origin = np.repeat(np.arange(len(batch)), [len(b[1]) for b in batch])
             h, m = trace_rays(grid, origins, ray_origin, np.concatenate([b[1] for b in batch]),
-                              np.concatenate([b[2] for b in batch]), np.concatenate([b[3] for b in batch]))
+                              np.concatenate([b[2] for b in batch]), np.concatenate([b[3] for b in batch]), threads)
             np.add(hits, h, out=hits)
             np.add(misses, m, out=misses)
             if progress is not None:

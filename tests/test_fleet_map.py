@@ -1,4 +1,6 @@
 """The fleet map: served maps equal offline reconstruction, re-posing, caches, the node index."""
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -138,6 +140,21 @@ def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted)
         assert fleet.occupancy(GRID) is before and fleet.cache_stats()["stale"] == 1
     after = fleet.occupancy(GRID)  # the next lone request brings it up to date
     assert not np.array_equal(after, before) and np.array_equal(after, offline(scans[:60], models[:60], "r1"))
+
+
+def test_tiles_traced_from_many_threads_at_once_equal_one_at_a_time(fitted):
+    """Tiles trace on the requesting threads with no lock around the kernel (trace_threads=1)."""
+    scans, models = fitted
+    tiles = [Grid.from_bbox([x, y], [x + 4.0, y + 4.0], r) for x in (-8.0, -4.0, 0.0, 4.0) for y in (-12.0, -4.0)
+             for r in (0.05, 0.1)]
+    fleets = [FleetMap("f"), FleetMap("f")]
+    for fleet in fleets:
+        for s, m in zip(scans, models):
+            fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    one_at_a_time = [fleets[0].occupancy(t) for t in tiles]
+    with ThreadPoolExecutor(8) as pool:
+        at_once = list(pool.map(fleets[1].occupancy, tiles))
+    assert all(np.array_equal(a, b) for a, b in zip(one_at_a_time, at_once))
 
 
 def test_query_touches_only_nodes_that_reach_it(fitted):

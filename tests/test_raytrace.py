@@ -89,6 +89,8 @@ def test_chunks_match_brute_force_and_each_other(dim, big):
         assert np.allclose(hits, counts[0][0], rtol=1e-7) and np.allclose(misses, counts[0][1], rtol=1e-7)
     again = chunked(grid, origins, ray_origin, ends, weights, is_hit, 3)
     assert np.array_equal(again[0], counts[2][0]) and np.array_equal(again[1], counts[2][1])
+    serial = trace_rays(grid, origins, ray_origin, ends, weights, is_hit, threads=1)  # no threading layer
+    assert np.array_equal(serial[0], counts[0][0]) and np.array_equal(serial[1], counts[0][1])
 
 
 def chunked(grid, origins, ray_origin, ends, weights, is_hit, n_chunks):

@@ -158,12 +158,15 @@ class NodeIndex:
 
 
 class FleetMap:
-    """Thread-safe. A short lock guards the state; a second one serialises sampling and ray
-    tracing (numba's kernels run one at a time), so ingest never waits behind a cold tile.
+    """Thread-safe. A short lock guards the state; tracing runs outside it (and outside the GIL),
+    so ingest never waits behind a tile.
 
-    Tiles are traced on `trace_threads` cores (default one): a server shares its cores with
-    ingest, HTTP and often robots, and numba's OpenMP threads spin at every barrier, so two
-    threads on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
+    Each tile is traced on one core by default (`trace_threads`), by the thread that asked for
+    it, so different tiles trace in parallel on the server's cores. A server shares its cores
+    with ingest, HTTP and often robots: numba's OpenMP threads spin at every barrier, and two of
+    them on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s). With
+    more threads per tile, tiles are traced one at a time (numba's threading layer may not be
+    entered from two threads at once).
     """
 
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
@@ -175,7 +178,8 @@ class FleetMap:
         self.dim: int | None = None
         self._robots: dict[str, Robot] = {}
         self._lock = threading.RLock()
-        self._trace_lock = threading.Lock()  # sample cache and numba kernels
+        self._trace_lock = threading.Lock()  # numba's threading layer, when trace_threads > 1
+        self._samples_lock = threading.Lock()
         self._index: NodeIndex | None = None  # from the first scan on
         self._log: list[tuple[str, int]] = []  # (robot, node) of every node added or moved, in order
         self._samples: OrderedDict = OrderedDict()
@@ -273,16 +277,19 @@ class FleetMap:
     def _node_rays(self, robot: str, node_id: int, node: Node, resolution: float):
         """Node-frame samples for this resolution, drawn once and kept (deterministic by seed)."""
         key = (robot, node_id, resolution)
-        rays = self._samples.get(key)
-        if rays is None:
-            rays = scan_rays(node.model, resolution, node.seed, self.samples_per_cell)
-            self._samples[key] = rays
-            self._sample_rays += len(rays[0])
+        with self._samples_lock:
+            rays = self._samples.get(key)
+            if rays is not None:
+                self._samples.move_to_end(key)
+                return rays
+        rays = scan_rays(node.model, resolution, node.seed, self.samples_per_cell)  # the same in every thread
+        with self._samples_lock:
+            if key not in self._samples:
+                self._samples[key] = rays
+                self._sample_rays += len(rays[0])
             while self._sample_rays > SAMPLE_CACHE_RAYS and len(self._samples) > 1:
                 _, old = self._samples.popitem(last=False)
                 self._sample_rays -= len(old[0])
-        else:
-            self._samples.move_to_end(key)
         return rays
 
     def _reaching(self, grid: Grid, robots: Sequence[str] | None) -> dict:
@@ -332,9 +339,10 @@ class FleetMap:
                     if len(ends):
                         yield pose.apply(node.model.origin[None])[0], pose.apply(ends), sign * weights, is_hit
 
+        if self.trace_threads == 1:
+            return trace_groups(grid, groups(), None, dtype=np.float64, threads=1)
         with self._trace_lock:
-            numba.set_num_threads(self.trace_threads)  # per calling thread
-            return trace_groups(grid, groups(), None, dtype=np.float64)
+            return trace_groups(grid, groups(), None, dtype=np.float64, threads=self.trace_threads)
 
     def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Hit and miss evidence (float32) on `grid` from the nodes that can reach it (all robots or `robots`)."""
