@@ -14,7 +14,7 @@ import threading
 import time
 from pathlib import Path
 
-MAX_BACKOFF_S = 30.0  # the longest a held message waits between two sendings
+MAX_DOUBLINGS = 4  # a held message waits at most 16 resend timeouts between two sendings
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS outbox (
@@ -108,17 +108,18 @@ class Outbox:
         with self._lock:
             return {i for (i,) in self._db.execute("SELECT id FROM outbox WHERE kind = ?", (kind,))}
 
-    def due(self, now: float, timeout: float, max_timeout: float = MAX_BACKOFF_S) -> list[tuple[str, int, str, bytes]]:
+    def due(self, now: float, timeout: float) -> list[tuple[str, int, str, bytes]]:
         """Messages to send again at `now` (epoch s), oldest first: never sent, or unanswered for
-        `timeout` s after their first sending, doubling after each further one up to `max_timeout`.
+        `timeout` s after their first sending, doubling after each further one (MAX_DOUBLINGS times).
 
-        The back-off keeps a busy server from being buried in copies of what it is still storing.
+        The back-off keeps a busy server from being buried in copies of what it is still storing;
+        its cap keeps a server that comes back after an outage from waiting long for the rest.
         """
         with self._lock:
             return self._db.execute(
                 "SELECT kind, id, key, raw FROM outbox WHERE attempts = 0 OR "
-                "sent + MIN(? * (1 << MIN(attempts - 1, 20)), ?) <= ? ORDER BY sent, kind DESC, id",
-                (timeout, max_timeout, now)).fetchall()
+                "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? ORDER BY sent, kind DESC, id",
+                (timeout, MAX_DOUBLINGS, now)).fetchall()
 
     def pending(self) -> int:
         with self._lock:
