@@ -215,8 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
     p.add_argument("--robot-quota-mb", type=float, default=512.0, metavar="MIB",
                    help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
-    p.add_argument("--trace-threads", type=int, default=1, metavar="N",
-                   help="cores that trace one tile (default 1: the others keep ingest and HTTP going)")
+    p.add_argument("--trace-threads", type=int, metavar="N",
+                   help="threads a large tile update is split over (default: the cores)")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 

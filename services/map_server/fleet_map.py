@@ -12,14 +12,15 @@ tile has the bytes a fresh reconstruction would have.
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
@@ -30,6 +31,8 @@ from protocol import PoseGraphUpdate, ScanMessage
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
+SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
+SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
 
 
 def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
@@ -159,26 +162,25 @@ class NodeIndex:
 
 class FleetMap:
     """Thread-safe. A short lock guards the state; tracing runs outside it (and outside the GIL),
-    so ingest never waits behind a tile.
+    so ingest never waits behind a tile, and different tiles trace in parallel.
 
-    Each tile is traced on one core by default (`trace_threads`), by the thread that asked for
-    it, so different tiles trace in parallel on the server's cores. A server shares its cores
-    with ingest, HTTP and often robots: numba's OpenMP threads spin at every barrier, and two of
-    them on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s). With
-    more threads per tile, tiles are traced one at a time (numba's threading layer may not be
-    entered from two threads at once).
+    Tracing never uses numba's threading layer (see `_trace`): a server shares its cores with
+    ingest, HTTP and often robots, and numba's OpenMP threads spin at every barrier: two of them
+    on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
     """
 
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
-                 trace_threads: int = 1):
+                 trace_threads: int | None = None):
         self.fleet = fleet
-        self.trace_threads = max(1, min(trace_threads, numba.config.NUMBA_NUM_THREADS))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        self.trace_threads = max(1, trace_threads or cores)
+        # Helpers for large updates (threads start when first needed).
+        self._pool = ThreadPoolExecutor(self.trace_threads - 1, "gmmap-trace") if self.trace_threads > 1 else None
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self.dim: int | None = None
         self._robots: dict[str, Robot] = {}
         self._lock = threading.RLock()
-        self._trace_lock = threading.Lock()  # numba's threading layer, when trace_threads > 1
         self._samples_lock = threading.Lock()
         self._index: NodeIndex | None = None  # from the first scan on
         self._log: list[tuple[str, int]] = []  # (robot, node) of every node added or moved, in order
@@ -330,19 +332,32 @@ class FleetMap:
             raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
 
     def _trace(self, grid: Grid, plus: list, minus: list) -> tuple[np.ndarray, np.ndarray]:
-        """Exact float64 counts of the nodes in `plus` less those in `minus`: ((robot, node), node, pose) each."""
+        """Exact float64 counts of the nodes in `plus` less those in `minus`: ((robot, node), node, pose) each.
 
+        A large update is split among `trace_threads` threads, each running the one-thread kernel
+        on its share of the nodes: counts are sums of quantised weights, exact in any order, so
+        the split changes no bit. Threads that block when idle, unlike numba's OpenMP ones.
+        """
+        entries = [(1.0, entry) for entry in plus] + [(-1.0, entry) for entry in minus]
+        parts = min(self.trace_threads, max(1, len(entries) // SPLIT_MIN_NODES))
+        if parts == 1 or grid.n_cells > SPLIT_MAX_CELLS:
+            return self._trace_part(grid, entries)
+        shares = [self._pool.submit(self._trace_part, grid, entries[i::parts]) for i in range(1, parts)]
+        hits, misses = self._trace_part(grid, entries[::parts])
+        for share in shares:
+            h, m = share.result()
+            hits += h
+            misses += m
+        return hits, misses
+
+    def _trace_part(self, grid: Grid, entries: list) -> tuple[np.ndarray, np.ndarray]:
         def groups():
-            for sign, entries in ((1.0, plus), (-1.0, minus)):
-                for (name, node_id), node, pose in entries:
-                    ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
-                    if len(ends):
-                        yield pose.apply(node.model.origin[None])[0], pose.apply(ends), sign * weights, is_hit
+            for sign, ((name, node_id), node, pose) in entries:
+                ends, weights, is_hit = self._node_rays(name, node_id, node, grid.resolution)
+                if len(ends):
+                    yield pose.apply(node.model.origin[None])[0], pose.apply(ends), sign * weights, is_hit
 
-        if self.trace_threads == 1:
-            return trace_groups(grid, groups(), None, dtype=np.float64, threads=1)
-        with self._trace_lock:
-            return trace_groups(grid, groups(), None, dtype=np.float64, threads=self.trace_threads)
+        return trace_groups(grid, groups(), None, dtype=np.float64, threads=1)
 
     def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Hit and miss evidence (float32) on `grid` from the nodes that can reach it (all robots or `robots`)."""
