@@ -1,9 +1,13 @@
 """Expectation-maximisation for a Gaussian mixture (Sec. III-A), in numba.
 
-Initialised by seeded k-means++ and Lloyd iterations, like scikit-learn's GaussianMixture,
-so the two reach the same kind of optimum; the E-step only visits the components whose
-5-sigma box holds the point (a hash grid of component boxes), so a 3D scan with many
-components costs a few component evaluations per point, not K.
+Initialised by seeded k-means++ and a few Lloyd iterations, like scikit-learn's GaussianMixture,
+so the two reach the same kind of optimum. Coarse to fine: EM converges on a seeded subset of
+about 40 points per component, then a bounded number of passes over every point polishes it.
+The E-step only visits the components whose 5-sigma box holds the point (a hash grid of
+component boxes), so a 3D scan with many components costs a few component evaluations per
+point, not K; it is fused with the sums of the M-step, and the M-step runs after every block of
+points (incremental EM, Neal & Hinton 1998), so one pass over the data moves the parameters
+several times.
 """
 from __future__ import annotations
 
@@ -13,17 +17,26 @@ from numba import njit
 from gmm_core.mixture import Mixture
 
 _LOG_2PI = np.log(2.0 * np.pi)
-# Responsibilities below exp(-30) change no sum in double precision that matters here.
-_LOG_RESP_FLOOR = -30.0
+# Responsibilities below exp(-20) = 2e-9 of the largest change no sum that matters here, and
+# skipping them saves an exp and a statistics update for a third of the candidates.
+_LOG_RESP_FLOOR = -20.0
+# Lloyd iterations after k-means++: EM moves the components on anyway, and iterations past the
+# first few change the fitted log-likelihood by less than the choice of seed does.
+_LLOYD_ITER = 5
+# Incremental EM: at most this many blocks per pass, each of at least this many points per
+# component, so that the per-block M-step and candidate lists stay cheap next to the E-step.
+_MAX_BLOCKS = 4
+_BLOCK_POINTS_PER_COMPONENT = 10
 
 
 @njit(cache=True)
-def _squared_distance(points, i, centres, k):
-    s = 0.0
-    for a in range(points.shape[1]):
-        t = points[i, a] - centres[k, a]
-        s += t * t
-    return s
+def _squared_distances(columns, x, out):
+    """out[i] = |p_i - x|^2 for points stored as (d, n) columns, a loop numba vectorises."""
+    out[:] = 0.0
+    for a in range(columns.shape[0]):
+        for i in range(columns.shape[1]):
+            t = columns[a, i] - x[a]
+            out[i] += t * t
 
 
 @njit(cache=True)
@@ -34,11 +47,11 @@ def _kmeans_labels(points, n_clusters, seed, max_iter):
     """
     np.random.seed(seed)
     n, d = points.shape
+    columns = np.ascontiguousarray(points.T)
     centres = np.empty((n_clusters, d))
     centres[0] = points[np.random.randint(n)]
     closest = np.empty(n)
-    for i in range(n):
-        closest[i] = _squared_distance(points, i, centres, 0)
+    _squared_distances(columns, centres[0], closest)
     n_trials = 2 + int(np.log(n_clusters))
     candidate = np.empty(n)
     best_closest = np.empty(n)
@@ -55,13 +68,10 @@ def _kmeans_labels(points, n_clusters, seed, max_iter):
                 if acc >= target:
                     pick = i
                     break
+            _squared_distances(columns, points[pick], candidate)
             potential = 0.0
             for i in range(n):
-                s = 0.0
-                for a in range(d):
-                    t = points[i, a] - points[pick, a]
-                    s += t * t
-                candidate[i] = min(closest[i], s)
+                candidate[i] = min(closest[i], candidate[i])
                 potential += candidate[i]
             if potential < best_potential:
                 best_potential = potential
@@ -69,19 +79,21 @@ def _kmeans_labels(points, n_clusters, seed, max_iter):
                 best_closest[:] = candidate
         closest[:] = best_closest
     labels = np.zeros(n, dtype=np.int64)
+    previous = np.empty(n, dtype=np.int64)
+    nearest = np.empty(n)
+    distance = np.empty(n)
     counts = np.zeros(n_clusters)
     for it in range(max_iter):
-        changed = 0
-        for i in range(n):
-            best, best_k = np.inf, 0
-            for k in range(n_clusters):
-                s = _squared_distance(points, i, centres, k)
-                if s < best:
-                    best, best_k = s, k
-            if it == 0 or labels[i] != best_k:
-                changed += 1
-            labels[i] = best_k
-        if changed == 0:
+        # Assignment one centre at a time over all points, so the inner loop is contiguous.
+        previous[:] = labels
+        nearest[:] = np.inf
+        for k in range(n_clusters):
+            _squared_distances(columns, centres[k], distance)
+            for i in range(n):
+                if distance[i] < nearest[i]:
+                    nearest[i] = distance[i]
+                    labels[i] = k
+        if it > 0 and (labels == previous).all():
             break
         centres[:] = 0.0
         counts[:] = 0.0
@@ -125,61 +137,76 @@ def _cholesky_inverse(cov, out):
 
 
 @njit(cache=True)
-def _m_step(n_k, sum_x, sum_xx, reg_covar, weights, means, covs):
-    """Parameters from the sufficient statistics; reg_covar on the diagonal keeps them PD."""
-    k_count, d = sum_x.shape
+def _features(points):
+    """Per point, what the M-step sums: [1, x, upper triangle of x x^T] (10 numbers in 3D, 6 in 2D)."""
+    n, d = points.shape
+    f = np.empty((n, 1 + d + d * (d + 1) // 2))
+    for i in range(n):
+        f[i, 0] = 1.0
+        j = 1 + d
+        for a in range(d):
+            f[i, 1 + a] = points[i, a]
+            for b in range(a, d):
+                f[i, j] = points[i, a] * points[i, b]
+                j += 1
+    return f
+
+
+@njit(cache=True)
+def _m_step(stats, reg_covar, weights, means, covs):
+    """Parameters from the summed features (rows of `stats`); reg_covar on the diagonal keeps them PD."""
+    k_count, d = means.shape
     total = 0.0
     for k in range(k_count):
-        total += n_k[k]
+        total += stats[k, 0]
     for k in range(k_count):
-        nk = max(n_k[k], 1e-300)
-        weights[k] = n_k[k] / total
+        nk = max(stats[k, 0], 1e-300)
+        weights[k] = stats[k, 0] / total
         for a in range(d):
-            means[k, a] = sum_x[k, a] / nk
+            means[k, a] = stats[k, 1 + a] / nk
+        j = 1 + d
         for a in range(d):
-            for b in range(d):
-                c = sum_xx[k, a, b] / nk - means[k, a] * means[k, b]
-                covs[k, a, b] = c
-        # Symmetrise and floor: a cancellation in E[xx]-mu mu^T must not give a negative variance.
-        for a in range(d):
-            for b in range(a + 1, d):
-                c = 0.5 * (covs[k, a, b] + covs[k, b, a])
+            for b in range(a, d):
+                c = stats[k, j] / nk - means[k, a] * means[k, b]
                 covs[k, a, b] = c
                 covs[k, b, a] = c
+                j += 1
+            # A cancellation in E[xx] - mu mu^T must not give a negative variance.
             covs[k, a, a] = max(covs[k, a, a], 0.0) + reg_covar
 
 
 @njit(cache=True)
-def _labels_statistics(points, labels, k_count):
-    n, d = points.shape
-    n_k = np.zeros(k_count)
-    sum_x = np.zeros((k_count, d))
-    sum_xx = np.zeros((k_count, d, d))
-    for i in range(n):
-        k = labels[i]
-        n_k[k] += 1.0
-        for a in range(d):
-            sum_x[k, a] += points[i, a]
-            for b in range(d):
-                sum_xx[k, a, b] += points[i, a] * points[i, b]
-    return n_k, sum_x, sum_xx
+def _labels_statistics(features, labels, k_count):
+    stats = np.zeros((k_count, features.shape[1]))
+    for i in range(features.shape[0]):
+        stats[labels[i]] += features[i]
+    return stats
 
 
 @njit(cache=True)
 def _hash_grid(points, n_components):
-    """A uniform grid over the points with about 2^d cells per component: (lo, cell size, dims)."""
+    """A uniform grid over the points, (lo, cell size, dims).
+
+    8 K^(1/d) cells along the longest axis keep a cell's candidate list near the few components
+    that matter there (about 11-13 per point on 3D scans, against 13-18 with half as many); no
+    more cells than points, so a sparse scan does not pay for the lists of empty cells.
+    """
     n, d = points.shape
     lo = np.empty(d)
     extent = np.empty(d)
     for a in range(d):
         lo[a] = points[:, a].min()
         extent[a] = points[:, a].max() - lo[a]
-    per_axis = 4.0 * n_components ** (1.0 / d)
-    cell = max(extent.max() / per_axis, 1e-9)
+    cell = max(extent.max() / (8.0 * n_components ** (1.0 / d)), 1e-9)
     dims = np.empty(d, dtype=np.int64)
-    for a in range(d):
-        dims[a] = max(1, min(int(extent[a] / cell) + 1, 256))
-    return lo, cell, dims
+    while True:
+        n_cells = 1
+        for a in range(d):
+            dims[a] = max(1, min(int(extent[a] / cell) + 1, 256))
+            n_cells *= dims[a]
+        if n_cells <= max(n, 1):
+            return lo, cell, dims
+        cell *= 1.25
 
 
 @njit(cache=True)
@@ -193,8 +220,8 @@ def _cell_of(x, lo, cell, dims):
 
 
 @njit(cache=True)
-def _candidates(means, covs, lo, cell, dims):
-    """CSR lists: for each hash cell, the components whose 5-sigma box overlaps it."""
+def _candidates(weights, means, covs, lo, cell, dims):
+    """CSR lists: for each hash cell, the live components whose 5-sigma box overlaps it."""
     k_count, d = means.shape
     n_cells = 1
     for a in range(d):
@@ -206,6 +233,8 @@ def _candidates(means, covs, lo, cell, dims):
         fill = counts[:-1].copy() if pass_ == 1 else counts[:-1]
         items = np.empty(counts[-1] if pass_ == 1 else 0, dtype=np.int64)
         for k in range(k_count):
+            if weights[k] == 0.0:  # a component that lost every point stays dead, as in scikit-learn
+                continue
             for a in range(d):
                 half = 5.0 * np.sqrt(covs[k, a, a])
                 first[k, a] = min(max(int((means[k, a] - half - lo[a]) / cell), 0), dims[a] - 1)
@@ -253,33 +282,36 @@ def _mahalanobis(points, i, prec, means, k):
 
 
 @njit(cache=True)
-def _e_step_statistics(points, point_cell, lo, cell, dims, weights, means, covs):
-    """One E-step fused with the statistics of the next M-step; returns the mean log-likelihood.
-
-    A point is scored against the components listed for its hash cell; one that no
-    component's 5-sigma box reaches is scored against all of them.
-    """
-    n, d = points.shape
-    k_count = weights.shape[0]
-    prec = np.empty((k_count, d, d))
-    log_norm = np.empty(k_count)
+def _prepare(weights, means, covs, prec, log_norm):
+    """Per component, L^{-1} into `prec` and log(pi_k) - log det(2 pi Sigma_k) / 2 into `log_norm`."""
+    k_count, d = means.shape
     for k in range(k_count):
         log_det = _cholesky_inverse(covs[k], prec[k])
         log_norm[k] = np.log(weights[k]) - 0.5 * (log_det + d * _LOG_2PI)
-    start, items = _candidates(means, covs, lo, cell, dims)
+
+
+@njit(cache=True)
+def _e_step_block(points, features, point_cell, lo_i, hi_i, start, items, prec, means, log_norm, stats):
+    """E-step over points lo_i..hi_i fused with the M-step sums (into `stats`); returns the sum of log p.
+
+    Points come sorted by hash cell, so a run of points shares one candidate list. A point is
+    scored against the components listed for its cell; one that no component's 5-sigma box
+    reaches is scored against all of them.
+    """
+    k_count = log_norm.shape[0]
     everyone = np.arange(k_count)
-    n_k = np.zeros(k_count)
-    sum_x = np.zeros((k_count, d))
-    sum_xx = np.zeros((k_count, d, d))
     log_p = np.empty(k_count)
+    stats[:] = 0.0
     total_ll = 0.0
-    for i in range(n):
-        c = point_cell[i]
-        comps = items[start[c]:start[c + 1]] if start[c + 1] > start[c] else everyone
+    c = -1
+    comps = everyone
+    for i in range(lo_i, hi_i):
+        if point_cell[i] != c:
+            c = point_cell[i]
+            comps = items[start[c]:start[c + 1]] if start[c + 1] > start[c] else everyone
         best = -np.inf
         for j in range(comps.shape[0]):
-            k = comps[j]
-            log_p[j] = log_norm[k] - 0.5 * _mahalanobis(points, i, prec, means, k)
+            log_p[j] = log_norm[comps[j]] - 0.5 * _mahalanobis(points, i, prec, means, comps[j])
             best = max(best, log_p[j])
         norm = 0.0
         for j in range(comps.shape[0]):
@@ -287,65 +319,104 @@ def _e_step_statistics(points, point_cell, lo, cell, dims, weights, means, covs)
             norm += log_p[j]
         total_ll += best + np.log(norm)
         for j in range(comps.shape[0]):
-            r = log_p[j] / norm
-            if r == 0.0:
+            if log_p[j] == 0.0:
                 continue
+            r = log_p[j] / norm
             k = comps[j]
-            n_k[k] += r
-            for a in range(d):
-                sum_x[k, a] += r * points[i, a]
-                for b in range(d):
-                    sum_xx[k, a, b] += r * points[i, a] * points[i, b]
-    return total_ll / n, n_k, sum_x, sum_xx
+            for q in range(features.shape[1]):
+                stats[k, q] += r * features[i, q]
+    return total_ll
 
 
 @njit(cache=True)
 def _refine(points, weights, means, covs, reg_covar, max_iter, tol):
-    """EM iterations in place until the mean log-likelihood changes by less than `tol`."""
-    n = points.shape[0]
-    lo, cell, dims = _hash_grid(points, weights.shape[0])
-    point_cell = np.empty(n, dtype=np.int64)
+    """Incremental EM in place, at most `max_iter` passes, until the mean log-likelihood of a
+    pass changes by less than `tol`; returns the number of passes.
+
+    Point i goes to block i mod B, so each block thins the whole scan evenly. The first pass is
+    plain EM; after it, the M-step runs after every block on that block's fresh sums plus the
+    other blocks' sums from their last visit. Like a plain EM step, each such step does not lower
+    the log-likelihood bound (Neal & Hinton 1998), and a pass moves the components B times.
+    """
+    n, d = points.shape
+    k_count = weights.shape[0]
+    n_blocks = max(1, min(_MAX_BLOCKS, n // (_BLOCK_POINTS_PER_COMPONENT * k_count)))
+    lo, cell, dims = _hash_grid(points, k_count)
+    n_cells = 1
+    for a in range(d):
+        n_cells *= dims[a]
+    # Counting sort by block, then by cell: points that share a candidate list are visited together.
+    key = np.empty(n, dtype=np.int64)
+    first = np.zeros(n_blocks * n_cells + 1, dtype=np.int64)
     for i in range(n):
-        point_cell[i] = _cell_of(points[i], lo, cell, dims)
+        key[i] = (i % n_blocks) * n_cells + _cell_of(points[i], lo, cell, dims)
+        first[key[i] + 1] += 1
+    for c in range(n_blocks * n_cells):
+        first[c + 1] += first[c]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[first[key[i]]] = i
+        first[key[i]] += 1
+    points = points[order]
+    point_cell = key[order] % n_cells
+    features = _features(points)
+    block_stats = np.zeros((n_blocks, k_count, features.shape[1]))
+    prec = np.empty((k_count, d, d))
+    log_norm = np.empty(k_count)
     previous = -np.inf
-    for _ in range(max_iter):
-        ll, n_k, sum_x, sum_xx = _e_step_statistics(points, point_cell, lo, cell, dims, weights, means, covs)
-        _m_step(n_k, sum_x, sum_xx, reg_covar, weights, means, covs)
+    passes = 0
+    while passes < max_iter:
+        passes += 1
+        ll = 0.0
+        for b in range(n_blocks):
+            if passes > 1 or b == 0:  # the parameters have moved since the last lists
+                _prepare(weights, means, covs, prec, log_norm)
+                start, items = _candidates(weights, means, covs, lo, cell, dims)
+            ll += _e_step_block(points, features, point_cell, (b * n) // n_blocks, ((b + 1) * n) // n_blocks,
+                                start, items, prec, means, log_norm, block_stats[b])
+            if passes > 1 or b == n_blocks - 1:
+                _m_step(block_stats.sum(axis=0), reg_covar, weights, means, covs)
+        ll /= n
         if abs(ll - previous) < tol:
             break
         previous = ll
+    return passes
 
 
 @njit(cache=True)
-def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points):
-    """Coarse to fine: k-means and EM on a seeded subset, then EM on every point.
+def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_polish_iter):
+    """Coarse to fine: k-means and EM on a seeded subset, then at most `max_polish_iter` passes
+    over every point.
 
     `points` are centred so that second moments keep their precision.
     """
     n, d = points.shape
     np.random.seed(seed)
     subset = points[np.random.permutation(n)[:init_points]] if n > init_points else points
-    labels = _kmeans_labels(subset, n_components, seed, 100)
-    n_k, sum_x, sum_xx = _labels_statistics(subset, labels, n_components)
+    labels = _kmeans_labels(subset, n_components, seed, _LLOYD_ITER)
     weights = np.empty(n_components)
     means = np.empty((n_components, d))
     covs = np.empty((n_components, d, d))
-    _m_step(n_k, sum_x, sum_xx, reg_covar, weights, means, covs)
+    _m_step(_labels_statistics(_features(subset), labels, n_components), reg_covar, weights, means, covs)
     _refine(subset, weights, means, covs, reg_covar, max_iter, tol)
     if n > init_points:
-        _refine(points, weights, means, covs, reg_covar, max_iter, tol)
+        _refine(points, weights, means, covs, reg_covar, min(max_iter, max_polish_iter), tol)
     return weights, means, covs
 
 
 def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-4,
                 max_iter: int = 100, tol: float = 1e-3, seed: int = 0,
-                init_points_per_component: float = 40.0) -> Mixture:
+                init_points_per_component: float = 40.0, max_polish_iter: int = 15) -> Mixture:
     """Maximum-likelihood mixture of `n_components` Gaussians for (n, d) points, by EM.
 
     `reg_covar` is added to every variance (as scikit-learn's reg_covar), so duplicate,
     collinear or single points still give positive-definite covariances. Components that
     end with no responsibility are dropped. `tol` bounds the change of the mean
-    log-likelihood per point between iterations, as in scikit-learn.
+    log-likelihood per point between passes, as in scikit-learn. EM first converges on a
+    seeded subset of `init_points_per_component * n_components` points; when there are more
+    points than that, at most `max_polish_iter` passes over all of them follow (the full-data
+    passes cost most and gain least: 15 reach scikit-learn's log-likelihood on 20,000-point
+    3D scans, docs/BENCHMARKS.md).
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] not in (2, 3):
@@ -357,7 +428,7 @@ def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-
         raise ValueError("fit_mixture: points contain NaN or inf")
     k = int(min(max(n_components, 1), n))
     shift = points.mean(axis=0)
-    weights, means, covs = _em(points - shift, k, float(reg_covar), int(max_iter), float(tol),
-                               int(seed), max(int(init_points_per_component * k), 1))
+    weights, means, covs = _em(points - shift, k, float(reg_covar), int(max_iter), float(tol), int(seed),
+                               max(int(init_points_per_component * k), 1), max(int(max_polish_iter), 1))
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), means[keep] + shift, covs[keep], n)
