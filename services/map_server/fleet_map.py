@@ -400,17 +400,20 @@ class FleetMap:
                 changes, seen, first = tile.changes, len(self._log), tile.prob is None
                 posed = self._changed_since(tile.seen, grid, robots)
             held = tile.held
-            moved = [k for k in posed if k in held and (posed[k] is None or posed[k][0] != held[k][0])]
+            moved = {k for k in posed if k in held and (posed[k] is None or posed[k][0] != held[k][0])}
             new = [(k, *posed[k][1:]) for k in posed
                    if posed[k] is not None and (k not in held or held[k][0] != posed[k][0])]
             stale = [(k, *held[k][1:]) for k in moved]  # counted at their old pose: subtracted
             if new or stale:
-                hits, misses = self._trace(grid, new, stale)
-                tile.hits += hits  # only after the trace succeeded: a failed one leaves the tile as it was
-                tile.misses += misses
-                for k, *_ in stale:
-                    del held[k]
-                held.update((k, posed[k]) for k, *_ in new)
+                after = {k: v for k, v in held.items() if k not in moved}
+                after.update((k, posed[k]) for k, *_ in new)
+                if len(new) + len(stale) <= len(after):
+                    hits, misses = self._trace(grid, new, stale)
+                    tile.hits += hits  # only after the trace succeeded: a failed one leaves the tile as it was
+                    tile.misses += misses
+                else:  # most of the tile moved (a big correction): tracing it afresh costs less
+                    tile.hits, tile.misses = self._trace(grid, [(k, *v[1:]) for k, v in after.items()], [])
+                tile.held = after
             tile.seen = seen
             prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
