@@ -21,10 +21,11 @@ from numba import njit, prange
 from gmm_core.grid import Grid
 
 BLOCK = 4  # cells along each side of the blocks that rays are ordered by (2 to 4 measured best)
-# Sort only grids whose float64 hits and misses (16 bytes a cell) are twice a 2 MB L2 cache or more:
-# measured with 10 m rays in random directions, sorting lost 8% on 168k cells (2D, 0.05 m) and
-# gained 1.25x on 551k cells (3D, 0.25 m), 2.1-2.5x on 8.6M (3D, 0.1 m).
-SORT_MIN_CELLS = 2**18
+# Sort only grids whose float64 hits and misses (16 bytes a cell) are four times a 2 MB L2 cache
+# or more: measured with 10 m rays in random directions, sorting lost 8% on 168k cells (2D, 0.05 m)
+# and gained 1.25x on 551k cells (3D, 0.25 m), 2.1-2.5x on 8.6M (3D, 0.1 m); on a 512 x 512 tile of
+# the Intel map (262k cells) it lost 10% (bench/correction.py, 146-155 vs 132-134 ms).
+SORT_MIN_CELLS = 2**19
 MARGIN = 2  # cells added to each side of a chunk's slab: the traversal's round-off stays within one
 
 

@@ -31,6 +31,7 @@ from protocol import PoseGraphUpdate, ScanMessage
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
+TRACER_NICE = 10  # ingest, HTTP and robots on the same machine come first
 SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
 SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
 
@@ -110,6 +111,14 @@ class Tile:
         return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
 
 
+def _lower_priority() -> None:
+    """Nice +10 for the calling thread (Linux: a thread's own nice value); elsewhere a no-op."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), TRACER_NICE)
+    except (AttributeError, OSError):
+        pass
+
+
 @contextmanager
 def _held(lock: threading.Lock):
     """Release a lock that is already acquired when the block ends."""
@@ -164,9 +173,10 @@ class FleetMap:
     """Thread-safe. A short lock guards the state; tracing runs outside it (and outside the GIL),
     so ingest never waits behind a tile, and different tiles trace in parallel.
 
-    Tracing never uses numba's threading layer (see `_trace`): a server shares its cores with
-    ingest, HTTP and often robots, and numba's OpenMP threads spin at every barrier: two of them
-    on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
+    Tiles are traced by a pool of `trace_threads` tracer threads (default: one per core) at
+    nice +10: a server shares its cores with ingest, HTTP and often robots, and those come
+    first. Not numba's threading layer: its OpenMP threads spin at every barrier, and two of
+    them on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
     """
 
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
@@ -174,8 +184,9 @@ class FleetMap:
         self.fleet = fleet
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
         self.trace_threads = max(1, trace_threads or cores)
-        # Helpers for large updates (threads start when first needed).
-        self._pool = ThreadPoolExecutor(self.trace_threads - 1, "gmmap-trace") if self.trace_threads > 1 else None
+        # All sampling and tracing runs here: at most trace_threads at once (memory stays bounded),
+        # at a lower CPU priority than ingest, HTTP and robots on the same machine.
+        self._tracers = ThreadPoolExecutor(self.trace_threads, "gmmap-trace", initializer=_lower_priority)
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self.dim: int | None = None
@@ -334,17 +345,17 @@ class FleetMap:
     def _trace(self, grid: Grid, plus: list, minus: list) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 counts of the nodes in `plus` less those in `minus`: ((robot, node), node, pose) each.
 
-        A large update is split among `trace_threads` threads, each running the one-thread kernel
-        on its share of the nodes: counts are sums of quantised weights, exact in any order, so
-        the split changes no bit. Threads that block when idle, unlike numba's OpenMP ones.
+        Traced by the map's tracer threads: a large update split among them, each running the
+        one-thread kernel on its share of the nodes (counts are sums of quantised weights, exact
+        in any order, so the split changes no bit).
         """
         entries = [(1.0, entry) for entry in plus] + [(-1.0, entry) for entry in minus]
         parts = min(self.trace_threads, max(1, len(entries) // SPLIT_MIN_NODES))
-        if parts == 1 or grid.n_cells > SPLIT_MAX_CELLS:
-            return self._trace_part(grid, entries)
-        shares = [self._pool.submit(self._trace_part, grid, entries[i::parts]) for i in range(1, parts)]
-        hits, misses = self._trace_part(grid, entries[::parts])
-        for share in shares:
+        if grid.n_cells > SPLIT_MAX_CELLS:
+            parts = 1
+        shares = [self._tracers.submit(self._trace_part, grid, entries[i::parts]) for i in range(parts)]
+        hits, misses = shares[0].result()
+        for share in shares[1:]:
             h, m = share.result()
             hits += h
             misses += m

@@ -42,7 +42,7 @@ class ServerOptions:
     data_dir: str = "./gmmap-data"
     synchronous: str = "NORMAL"
     robot_quota_mb: float = 512.0  # stored scan bytes per robot, MiB; 0: no quota
-    trace_threads: int | None = None  # threads a large tile update is split over; None: the cores
+    trace_threads: int | None = None  # FleetMap's tracer threads; None: one per core
 
 
 def query_grid(query: MapQuery) -> Grid:
