@@ -23,6 +23,7 @@ CORRECTION_PERIOD_S = 10.0  # a loop closure (pose-graph update) every 10 s of d
 # Robots sharing a process (services.sim.robots) simulate one scan at a time: the world's
 # parallel numba kernels must not be entered from two threads at once (workqueue layer).
 _SIMULATING = threading.Lock()
+_BUILDING = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -58,9 +59,15 @@ def correction_interval(rate: float) -> int:
     return max(1, round(CORRECTION_PERIOD_S * rate))
 
 
-@lru_cache(maxsize=4)
 def shared_fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> "SimulatedFleet":
-    """One SimulatedFleet per process for robots of the same run (services.sim.robots)."""
+    """One SimulatedFleet per process for robots of the same run (services.sim.robots), built once
+    however many robot threads ask for it at the same time."""
+    with _BUILDING:
+        return _fleet(world, robots, scans, rate, seed)
+
+
+@lru_cache(maxsize=4)
+def _fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> "SimulatedFleet":
     return SimulatedFleet(world, robots, scans, rate, seed)
 
 
