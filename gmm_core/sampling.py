@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
+from numba import njit
 
 from gmm_core.mixture import Mixture
 from gmm_core.scan import ScanModel
@@ -35,12 +36,30 @@ def samples_per_component(mixture: Mixture, resolution: float, samples_per_cell:
 
 def sample_mixture(mixture: Mixture, counts: np.ndarray, rng: np.random.Generator):
     """`counts[k]` samples of each component and their weights N pi_k / counts[k]."""
-    component = np.repeat(np.arange(mixture.n_components), counts)
     chol = np.linalg.cholesky(mixture.covariances)
-    z = rng.standard_normal((component.shape[0], mixture.dim))
-    points = mixture.means[component] + np.einsum("nij,nj->ni", chol[component], z)
-    weights = (mixture.support * mixture.weights / np.maximum(counts, 1))[component]
-    return points, np.round(weights / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+    z = rng.standard_normal((int(counts.sum()), mixture.dim))
+    weights = np.round(mixture.support * mixture.weights / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+    return _place(mixture.means, chol, counts, weights, z)
+
+
+@njit(cache=True, nogil=True)
+def _place(means, chol, counts, weights, z):
+    """Sample i of component k at means[k] + chol[k] z[i], with weight weights[k]; outside the
+    GIL, so a map server's tracer threads draw samples in parallel."""
+    n, d = z.shape
+    points = np.empty((n, d))
+    sample_weights = np.empty(n)
+    i = 0
+    for k in range(counts.shape[0]):
+        for _ in range(counts[k]):
+            for a in range(d):
+                s = 0.0
+                for b in range(a + 1):  # lower triangular
+                    s += chol[k, a, b] * z[i, b]
+                points[i, a] = means[k, a] + s
+            sample_weights[i] = weights[k]
+            i += 1
+    return points, sample_weights
 
 
 def scan_rays(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0):
