@@ -3,7 +3,7 @@ import numpy as np
 
 from gmm_core import FitConfig, Grid, Mixture, Pose, ScanModel, fit_scan
 from gmm_core.reconstruct import count_beams, reconstruct
-from gmm_core.sampling import samples_per_component, scan_rays, scan_seed
+from gmm_core.sampling import sample_mixture, samples_per_component, scan_rays, scan_seed
 
 
 def wall_scan():
@@ -70,3 +70,20 @@ def test_empty_model_and_far_scans_add_nothing():
     grid = Grid.from_bbox([100.0, 100.0], [101.0, 101.0], 0.1)
     h, m = reconstruct(grid, [(empty, Pose.identity(2), 0), (model, Pose.identity(2), 1)])
     assert h.sum() == 0 and m.sum() == 0
+
+
+def test_sample_placement_kernel_matches_numpy():
+    """means[k] + chol[k] z[i] from the numba kernel equals numpy's gather-and-einsum, 2D and 3D."""
+    rng = np.random.default_rng(4)
+    for dim in (2, 3):
+        k = 7
+        a = rng.normal(size=(k, dim, dim))
+        mixture = Mixture(np.full(k, 1 / k), rng.normal(size=(k, dim)), a @ a.transpose(0, 2, 1) + np.eye(dim), 50)
+        counts = rng.integers(0, 9, k)
+        points, weights = sample_mixture(mixture, counts, np.random.default_rng(1))
+        component = np.repeat(np.arange(k), counts)
+        z = np.random.default_rng(1).standard_normal((counts.sum(), dim))
+        chol = np.linalg.cholesky(mixture.covariances)
+        assert np.allclose(points, mixture.means[component] + np.einsum("nij,nj->ni", chol[component], z),
+                           rtol=0, atol=1e-12)
+        assert np.allclose(weights, (50 / k / np.maximum(counts, 1))[component], rtol=1e-6)
