@@ -1,4 +1,5 @@
-"""The report's figures (matplotlib, Agg): bytes over time, AUROC over time, final map vs ground truth."""
+"""The report's figures (matplotlib, Agg): bytes over time, AUROC over time, final map vs ground truth,
+the server's memory over time."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -71,6 +72,20 @@ def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
     for ax, (title, a) in zip(axes, panels):
         ax.imshow(plane(a), cmap="gray_r", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
         ax.set(title=title + ("" if z is None else f", z = {z:.1f} m"), xlabel="x (m)", ylabel="y (m)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def memory_over_time(path: Path, rss: list[tuple[float, float]]) -> None:
+    """The map server's resident memory (MiB) against seconds since the robots started."""
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    if rss:
+        t, mib = zip(*rss)
+        ax.plot(t, mib, "-", color="k")
+    ax.set(xlabel="time since the robots started (s)", ylabel="resident memory (MiB)", title="Map server memory",
+           ylim=(0, None))
+    ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

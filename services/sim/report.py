@@ -24,6 +24,9 @@ may overtake by a millisecond: a few lags are slightly negative). Tile latency: 
 of the `--http-clients`, each fetching random 256 x 256 PNG tiles of the viewer's tiling. Faster
 than real time: simulated seconds x cores / CPU seconds of the server and agent processes (the
 harness's relays, tap and map fetches are not counted; the server's answers to them are).
+
+Memory. The server's resident set (VmRSS in /proc), sampled by the harness five times a second
+from when the robots start until they are done; growth = last sample - first.
 """
 from __future__ import annotations
 
@@ -254,6 +257,7 @@ def grade(record: RunRecord) -> Grading:
         "realtime_factor": o.duration * cpu_cores() / busy,
         "schedule_slip_s": max(slip, default=None),
         **memory_growth(record.server_rss),
+        "server_rss_over_time": memory_series(record.server_rss, record.started),
         "per_robot": robots, "auroc_over_time": timeline,
     }
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
@@ -271,8 +275,18 @@ def memory_growth(rss: list[tuple[float, int]]) -> dict:
             "server_rss_growth_mb": mb[-1] - mb[0]}
 
 
+def memory_series(rss: list[tuple[float, int]], started: float) -> list[tuple[float, float]]:
+    """(seconds since the robots started, MiB), one sample a second at most."""
+    series, last = [], -1.0
+    for t, b in rss:
+        if b and t - started >= last + 1.0:
+            last = t - started
+            series.append((round(last, 1), round(b / 2**20, 1)))
+    return series
+
+
 def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
-    """DIR/report.json, DIR/report.md and its three PNGs."""
+    """DIR/report.json, DIR/report.md and its four PNGs."""
     from services.sim import plots
 
     out.mkdir(parents=True, exist_ok=True)
@@ -289,6 +303,7 @@ def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
     plots.auroc_over_time(out / "auroc_over_time.png", r["auroc_over_time"], corrections)
     z = float(np.median(np.concatenate([p[:, 2] for p in record.fleet.paths]))) if record.grid.dim == 3 else None
     plots.map_vs_truth(out / "map_vs_truth.png", grading.final_maps, record.grid, z)
+    plots.memory_over_time(out / "server_memory.png", r["server_rss_over_time"])
     (out / "report.md").write_text(markdown(r))
 
 
@@ -350,6 +365,7 @@ def markdown(r: dict) -> str:
     lines += ["| " + " | ".join([name] + [_fmt(x[key], digits) for key, digits in columns]) + " |"
               for name, x in r["per_robot"].items()]
     lines += ["", "![bytes over time](bytes_over_time.png)", "", "![AUROC over time](auroc_over_time.png)", "",
-              "![final map and ground truth](map_vs_truth.png)", "", "## How it is measured", "",
+              "![final map and ground truth](map_vs_truth.png)", "", "![server memory](server_memory.png)", "",
+              "## How it is measured", "",
               __doc__.split("\n\n", 1)[1].strip(), ""]
     return "\n".join(lines)
