@@ -216,8 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot-quota-mb", type=float, default=512.0, metavar="MIB",
                    help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
     p.add_argument("--trace-threads", type=int, metavar="N",
-                   help="tracer threads (at nice +10, after ingest and HTTP) that sample and trace tiles; "
-                        "a large update is split among them (default: one per core)")
+                   help="tracer threads that sample and trace tiles; a large update is split among them "
+                        "(default: one per core)")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 

@@ -31,7 +31,6 @@ from protocol import PoseGraphUpdate, ScanMessage
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
-TRACER_NICE = 10  # ingest, HTTP and robots on the same machine come first
 SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
 SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
 
@@ -111,14 +110,6 @@ class Tile:
         return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
 
 
-def _lower_priority() -> None:
-    """Nice +10 for the calling thread (Linux: a thread's own nice value); elsewhere a no-op."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), TRACER_NICE)
-    except (AttributeError, OSError):
-        pass
-
-
 @contextmanager
 def _held(lock: threading.Lock):
     """Release a lock that is already acquired when the block ends."""
@@ -173,10 +164,11 @@ class FleetMap:
     """Thread-safe. A short lock guards the state; tracing runs outside it (and outside the GIL),
     so ingest never waits behind a tile, and different tiles trace in parallel.
 
-    Tiles are traced by a pool of `trace_threads` tracer threads (default: one per core) at
-    nice +10: a server shares its cores with ingest, HTTP and often robots, and those come
-    first. Not numba's threading layer: its OpenMP threads spin at every barrier, and two of
-    them on a busy 2-core machine traced 6x slower than one (0.5 vs 3.1-3.7 M rays/s).
+    Tiles are traced by a pool of `trace_threads` tracer threads (default: one per core). Not
+    numba's threading layer: a server shares its cores with ingest, HTTP and often robots, and
+    numba's OpenMP threads spin at every barrier: two of them on a busy 2-core machine traced
+    6x slower than one (0.5 vs 3.1-3.7 M rays/s). (Tracers at nice +10 were tried: under a
+    flood of HTTP requests they starved, and a lone large query waited minutes.)
     """
 
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
@@ -184,9 +176,9 @@ class FleetMap:
         self.fleet = fleet
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
         self.trace_threads = max(1, trace_threads or cores)
-        # All sampling and tracing runs here: at most trace_threads at once (memory stays bounded),
-        # at a lower CPU priority than ingest, HTTP and robots on the same machine.
-        self._tracers = ThreadPoolExecutor(self.trace_threads, "gmmap-trace", initializer=_lower_priority)
+        # All sampling and tracing runs here: at most trace_threads at once, so memory stays bounded
+        # and ingest and HTTP keep a share of the cores however many clients ask for tiles.
+        self._tracers = ThreadPoolExecutor(self.trace_threads, "gmmap-trace")
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self.dim: int | None = None
