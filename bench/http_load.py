@@ -68,7 +68,7 @@ def main() -> None:
                 time.sleep(args.seconds)
                 lat, errors = clients.stop()
                 ms = 1000 * np.percentile(lat, [50, 90, 99])
-                print(f"| {phase} | {len(lat)} | {errors} | {len(lat) / args.seconds:.0f} | "
+                print(f"| {phase} | {len(lat)} | {sum(errors.values())} | {len(lat) / args.seconds:.0f} | "
                       f"{ms[0]:.1f} | {ms[1]:.1f} | {ms[2]:.1f} |")
         finally:
             server.terminate()

@@ -250,7 +250,8 @@ def grade(record: RunRecord) -> Grading:
         "auroc_resolution_m": grid.resolution, "auroc_cells": int(observed[-1].sum()),
         "ingest_lag_p50_s": percentile(all_lags, 50), "ingest_lag_p99_s": percentile(all_lags, 99),
         "ingest_lag_max_s": max(all_lags, default=None),
-        "tile_requests": len(record.tile_latencies), "tile_errors": record.tile_errors,
+        "tile_requests": len(record.tile_latencies), "tile_errors": sum(record.tile_errors.values()),
+        "tile_error_kinds": record.tile_errors,
         "tile_latency_p50_s": percentile(record.tile_latencies, 50),
         "tile_latency_p99_s": percentile(record.tile_latencies, 99),
         "cpu_s": {k: round(v, 2) for k, v in record.cpu_s.items()},
@@ -345,7 +346,9 @@ def markdown(r: dict) -> str:
         ("graded cells", _fmt(r["auroc_cells"])),
         ("ingest lag p50 / p99 / max (s)", lag),
         ("tiles fetched / errors; latency p50 / p99 (s)",
-         f"{_fmt(r['tile_requests'])} / {_fmt(r['tile_errors'])}; {tiles}"),
+         f"{_fmt(r['tile_requests'])} / {_fmt(r['tile_errors'])}"
+         f"{' (' + ', '.join(f'{k}: {n}' for k, n in r['tile_error_kinds'].items()) + ')' if r['tile_errors'] else ''}"
+         f"; {tiles}"),
         ("CPU s: server / agents / harness", cpu),
         ("faster than real time (simulated s x cores / CPU s of server + agents)",
          f"{_fmt(r['realtime_factor'], 3)}x"),

@@ -21,7 +21,9 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.error
 import urllib.request
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,7 +81,7 @@ class RunRecord:
     link_bytes: dict[str, tuple[int, int]] = field(default_factory=dict)  # robot -> (up, down)
     snapshots: list[Snapshot] = field(default_factory=list)
     tile_latencies: list[float] = field(default_factory=list)
-    tile_errors: int = 0
+    tile_errors: dict[str, int] = field(default_factory=dict)  # failed requests by kind
     published: dict[str, int] = field(default_factory=dict)  # scans each agent fitted and sent
     stored: dict[tuple[str, int], bytes] = field(default_factory=dict)  # the server's store
     components: dict[str, int] = field(default_factory=dict)
@@ -139,8 +141,9 @@ def tile_urls(base: str, grid: Grid) -> list[str]:
 
 
 def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
-    """`clients` threads fetching random tiles until `stop` is set; puts (latencies, errors) on `results`."""
-    latencies, errors, lock = [], [0], threading.Lock()
+    """`clients` threads fetching random tiles until `stop` is set; puts (latencies, errors by kind)
+    on `results`."""
+    latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
         rng = random.Random(seed)
@@ -150,16 +153,17 @@ def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
                 urllib.request.urlopen(rng.choice(urls), timeout=60).read()
                 with lock:
                     latencies.append(time.perf_counter() - start)
-            except OSError:
+            except OSError as error:
+                kind = f"HTTP {error.code}" if isinstance(error, urllib.error.HTTPError) else repr(error)[:120]
                 with lock:
-                    errors[0] += 1
+                    errors[kind] += 1
 
     threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
-    results.put((latencies, errors[0]))
+    results.put((latencies, dict(errors)))
 
 
 class TileClients:
@@ -171,8 +175,8 @@ class TileClients:
         self._process = spawn.Process(target=fetch_tiles, args=(urls, clients, self._stop, self._results), daemon=True)
         self._process.start()
 
-    def stop(self) -> tuple[list[float], int]:
-        """(latencies of the answered requests, failed requests)."""
+    def stop(self) -> tuple[list[float], dict[str, int]]:
+        """(latencies of the answered requests, failed requests by kind of failure)."""
         self._stop.set()
         answer = self._results.get(timeout=120)
         self._process.join()
