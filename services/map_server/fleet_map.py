@@ -408,15 +408,18 @@ class FleetMap:
                    if posed[k] is not None and (k not in held or held[k][0] != posed[k][0])]
             stale = [(k, *held[k][1:]) for k in moved]  # counted at their old pose: subtracted
             if new or stale:
-                after = {k: v for k, v in held.items() if k not in moved}
-                after.update((k, posed[k]) for k, *_ in new)
-                if len(new) + len(stale) <= len(after):
+                # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless
+                # most of the tile moved (a big correction).
+                if 2 * len(moved) <= len(held):
                     hits, misses = self._trace(grid, new, stale)
                     tile.hits += hits  # only after the trace succeeded: a failed one leaves the tile as it was
                     tile.misses += misses
-                else:  # most of the tile moved (a big correction): tracing it afresh costs less
-                    tile.hits, tile.misses = self._trace(grid, [(k, *v[1:]) for k, v in after.items()], [])
-                tile.held = after
+                else:
+                    kept = [(k, *v[1:]) for k, v in held.items() if k not in moved]
+                    tile.hits, tile.misses = self._trace(grid, kept + new, [])
+                for k in moved:
+                    del held[k]
+                held.update((k, posed[k]) for k, *_ in new)
             tile.seen = seen
             prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
