@@ -4,9 +4,9 @@ Every message goes to the outbox (committed) before it is published; a resender 
 republishes what has gone unanswered, so after a server restart or a reconnect everything gets
 through. The resend timeout follows the measured Ack round trip (TCP's estimator, RFC 6298,
 never below `resend_s`) and doubles with every further sending of a message: a server that is
-slow but alive is not buried in copies of what it is still storing. The Zenoh session (client mode) opens in the
-background: a robot out of reach keeps fitting and filling its outbox. A finite source ends
-when the outbox is empty.
+slow but alive is not buried in copies of what it is still storing. The Zenoh session (client
+mode) opens in the background: a robot out of reach keeps fitting and filling its outbox. A
+finite source ends when the outbox is empty.
 """
 from __future__ import annotations
 

@@ -80,24 +80,37 @@ ERRORS = {status: {"model": ErrorBody, "description": text} for status, text in 
 
 
 class EncodedTiles:
-    """Reply bodies of the newest tiles: a cached tile is the same read-only array until it
-    changes, so its PNG (the costliest part of a cached reply) is encoded once."""
+    """Reply bodies of recent tiles: a cached tile is the same read-only array until it changes,
+    so its PNG (the costliest part of a cached reply) is encoded once. One body per request
+    (format, grid, robots), for the array it was made from; at most `max_bytes` in all."""
 
-    def __init__(self, entries: int = 256):
-        self._entries = entries
+    def __init__(self, max_bytes: int = 64 << 20):
+        self._max_bytes = max_bytes
+        self._bytes = 0
         self._bodies: OrderedDict[tuple, tuple[np.ndarray, bytes]] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, format: Format, prob: np.ndarray) -> bytes | None:
+    def get(self, key: tuple, prob: np.ndarray) -> bytes | None:
         with self._lock:
-            hit = self._bodies.get((format, id(prob)))
-            return hit[1] if hit is not None and hit[0] is prob else None
+            hit = self._bodies.get(key)
+            if hit is None or hit[0] is not prob:
+                return None
+            self._bodies.move_to_end(key)
+            return hit[1]
 
-    def put(self, format: Format, prob: np.ndarray, body: bytes) -> None:
-        with self._lock:  # the entry keeps `prob` alive, so its id is not reused while cached
-            self._bodies[format, id(prob)] = (prob, body)
-            while len(self._bodies) > self._entries:
-                self._bodies.popitem(last=False)
+    def put(self, key: tuple, prob: np.ndarray, body: bytes) -> None:
+        size = prob.nbytes + len(body)
+        if size > self._max_bytes // 8:  # a large region: not worth holding
+            return
+        with self._lock:
+            old = self._bodies.pop(key, None)
+            if old is not None:
+                self._bytes -= old[0].nbytes + len(old[1])
+            self._bodies[key] = (prob, body)
+            self._bytes += size
+            while self._bytes > self._max_bytes:
+                _, (p, b) = self._bodies.popitem(last=False)
+                self._bytes -= p.nbytes + len(b)
 
 
 def allowed_methods(app: FastAPI, scope) -> set[str]:
@@ -180,7 +193,8 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         grid = params.grid(lo, hi, res)
         selected = params.robots(robots)
         prob = occupancy_of(grid, selected)
-        body = encoded.get(format, prob)
+        reply = (format, tuple(grid.origin), grid.resolution, grid.shape, None if selected is None else tuple(selected))
+        body = encoded.get(reply, prob)
         if body is None:
             if format is Format.npy:
                 buffer = io.BytesIO()
@@ -190,7 +204,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
                 body = occupancy_png(prob)
             else:
                 body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
-            encoded.put(format, prob, body)
+            encoded.put(reply, prob, body)
         state.metrics.query_seconds.observe(time.perf_counter() - start)
         headers = {"X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
                    "X-Grid-Resolution": repr(grid.resolution),
