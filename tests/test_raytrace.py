@@ -29,16 +29,23 @@ def brute_force(grid, origins, ray_origin, ends, weights, is_hit):
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
 
 
+def random_rays(rng, dim, n_origins, n_rays, origin_span, end_span):
+    """Weighted rays from origins in [-origin_span, origin_span]^dim to ends in [-end_span, end_span]^dim,
+    70 % of them ending in a hit."""
+    origins = rng.uniform(-origin_span, origin_span, (n_origins, dim))
+    ray_origin = rng.integers(0, n_origins, n_rays)
+    ends = rng.uniform(-end_span, end_span, (n_rays, dim))
+    weights = rng.uniform(0.5, 2, n_rays)
+    is_hit = rng.random(n_rays) < 0.7
+    return origins, ray_origin, ends, weights, is_hit
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_matches_brute_force_on_random_rays(dim):
     rng = np.random.default_rng(dim)
     grid = Grid(np.full(dim, -2.0), 0.37, (11,) * dim if dim == 2 else (9, 8, 7))
     # Origins inside and outside the grid; ends inside, outside and beyond it.
-    origins = rng.uniform(-4, 4, (6, dim))
-    ray_origin = rng.integers(0, 6, 400)
-    ends = rng.uniform(-5, 5, (400, dim))
-    weights = rng.uniform(0.5, 2, 400)
-    is_hit = rng.random(400) < 0.7
+    origins, ray_origin, ends, weights, is_hit = random_rays(rng, dim, 6, 400, 4, 5)
     fast = trace_rays(grid, origins, ray_origin, ends, weights, is_hit)
     slow = brute_force(grid, origins, ray_origin, ends, weights, is_hit)
     assert np.allclose(fast[0], slow[0], atol=1e-4)
@@ -77,11 +84,7 @@ def test_chunks_match_brute_force_and_each_other(dim, big):
     side = (raytrace.SORT_MIN_CELLS ** (1 / dim) + 1 if big else 9)
     grid = Grid(np.full(dim, -2.0), 4.0 / side, (int(side),) * dim)
     assert (grid.n_cells >= raytrace.SORT_MIN_CELLS) == big
-    origins = rng.uniform(-3, 3, (4, dim))
-    ray_origin = rng.integers(0, 4, 300)
-    ends = rng.uniform(-3, 3, (300, dim))
-    weights = rng.uniform(0.5, 2, 300)
-    is_hit = rng.random(300) < 0.7
+    origins, ray_origin, ends, weights, is_hit = random_rays(rng, dim, 4, 300, 3, 3)
     slow = brute_force(grid, origins, ray_origin, ends, weights, is_hit)
     counts = [chunked(grid, origins, ray_origin, ends, weights, is_hit, n) for n in (1, 2, 3, 7)]
     for hits, misses in counts:
