@@ -174,7 +174,7 @@ def _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
             misses[flat] += w
 
 
-@njit(cache=True, parallel=True, nogil=True)  # a map server keeps ingesting while a tile is traced
+@njit(cache=True, parallel=True, nogil=True)  # the caller's other Python threads run while it traces
 def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):
     n_cells = dims[0] * dims[1] * dims[2]
     axis = 2 if dims[2] > 1 else 1  # the slowest array axis that has more than one cell

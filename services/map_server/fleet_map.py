@@ -128,9 +128,6 @@ class NodeIndex:
         self._lo = np.empty((1024, dim))
         self._hi = np.empty((1024, dim))
 
-    def __len__(self) -> int:
-        return len(self.keys)
-
     def put(self, keys: Sequence[tuple[str, int]], lo: np.ndarray, hi: np.ndarray) -> None:
         rows = np.empty(len(keys), dtype=np.int64)
         for i, key in enumerate(keys):
@@ -303,13 +300,8 @@ class FleetMap:
         if self._index is None:
             return {}
         wanted = None if robots is None else set(robots)
-        posed = {}
-        for name, node_id in self._index.reaching(grid.origin, grid.upper):
-            if wanted is None or name in wanted:
-                robot = self._robots[name]
-                node = robot.nodes[node_id]
-                posed[name, node_id] = (robot.stamp(node), node, robot.world_pose(node))
-        return posed
+        return {key: self._posed(key) for key in self._index.reaching(grid.origin, grid.upper)
+                if wanted is None or key[0] in wanted}
 
     def _changed_since(self, seen: int, grid: Grid, robots: Sequence[str] | None) -> dict:
         """Nodes added or moved since change-log entry `seen`: (robot, node) -> (stamp, node, world pose)
@@ -323,12 +315,14 @@ class FleetMap:
             keys = [k for k in keys if k[0] in wanted]
         if not keys:
             return {}
-        posed = {}
-        for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper)):
-            robot = self._robots[key[0]]
-            node = robot.nodes[key[1]]
-            posed[key] = (robot.stamp(node), node, robot.world_pose(node)) if reaches else None
-        return posed
+        return {key: self._posed(key) if reaches else None
+                for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper))}
+
+    def _posed(self, key: tuple[str, int]) -> tuple[tuple[int, int], Node, Pose]:
+        """(stamp, node, world pose) of node `key` now. Under the lock."""
+        robot = self._robots[key[0]]
+        node = robot.nodes[key[1]]
+        return robot.stamp(node), node, robot.world_pose(node)
 
     def _check_dim(self, grid: Grid) -> None:
         if self.dim is not None and grid.dim != self.dim:
