@@ -12,7 +12,6 @@ tile has the bytes a fresh reconstruction would have.
 """
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -28,6 +27,7 @@ from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
 from gmm_core.reconstruct import trace_groups
 from gmm_core.sampling import scan_rays, scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
+from services.host import cpu_cores
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
@@ -171,8 +171,7 @@ class FleetMap:
     def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
                  trace_threads: int | None = None):
         self.fleet = fleet
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        self.trace_threads = max(1, trace_threads or cores)
+        self.trace_threads = max(1, trace_threads or cpu_cores())
         # All sampling and tracing runs here: at most trace_threads at once, so memory stays bounded
         # and ingest and HTTP keep a share of the cores however many clients ask for tiles.
         self._tracers = ThreadPoolExecutor(self.trace_threads, "gmmap-trace")

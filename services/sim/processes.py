@@ -15,11 +15,6 @@ ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python 
 SERVER_READY = "gmmap server ready"
 
 
-def cpu_cores() -> int:
-    """Cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

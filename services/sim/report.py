@@ -46,7 +46,7 @@ from protocol import ScanMessage, decode
 from services.datasets.common import RangeScan
 from services.map_server.fleet_map import FleetMap
 from services.sim.fleet import robot_name
-from services.sim.processes import cpu_cores
+from services.host import cpu_cores
 from services.sim.run import RunRecord, slabs
 from services.sim.trajectory import path_pose
 

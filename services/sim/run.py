@@ -32,7 +32,8 @@ import numpy as np
 from gmm_core import Grid
 from services.api.params import MAX_CELLS
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
-from services.sim.processes import Processes, cpu_cores, free_port
+from services.host import cpu_cores
+from services.sim.processes import Processes, free_port
 from services.sim.relay import CountingRelay
 from services.sim.tap import WireEvent, WireTap
 
