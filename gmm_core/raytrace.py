@@ -1,16 +1,25 @@
-"""Amanatides-Woo voxel traversal [22] of rays clipped to a grid, accumulating hits and misses.
+"""Voxel traversal of rays clipped to a grid, accumulating hits and misses: the cells of
+Amanatides-Woo [22], found another way.
+
+A ray crosses the same cells as Amanatides-Woo's walk, but the walk chooses the axis of each step
+with a branch that the CPU mispredicts about every other step in 3D. Here each axis is taken on
+its own: the cell a ray enters through its k-th boundary along x has x = first + s (k + 1) and y, z
+the floor of the ray's coordinates at that boundary, linear in k. Three short loops without
+branches write those cells (vectorised), and one loop adds the misses. The boundary crossed last
+(largest t) enters the end cell, which takes the hit.
 
 One kernel serves 2D and 3D: a 2D grid is a 3D grid one cell thick with every ray at its
 mid-plane, so the z axis never steps.
 
-On a grid too big for the cache, rays are traced in the order of the block of BLOCK^3 cells
-their end point falls in, not in the order given: rays that end close together cross nearly the
-same cells, so the counts they add to stay in cache. The block order puts the slowest array axis
-(z in 3D, y in 2D) first, so the equal chunks of ordered rays given to the numba threads each
-reach only a slab of that axis. The first chunk adds into the result itself, every other one
-into a buffer that holds only its slab, and the buffers are added in at the end: a thread never
-zeroes, fills or sums a whole copy of a big grid. Each chunk and the buffers' sum run in a fixed
-order, so the same rays and thread count give the same sums, bit for bit.
+Rays are first copied into one array of records (end, weight, origin and hit flag): on a grid too
+big for the cache, in the order of the block of BLOCK^3 cells their end point falls in, not in the
+order given: rays that end close together cross nearly the same cells, so the counts they add to
+stay in cache. The block order puts the slowest array axis (z in 3D, y in 2D) first, so the equal
+chunks of ordered rays given to the numba threads each reach only a slab of that axis. The first
+chunk adds into the result itself, every other one into a buffer that holds only its slab, and
+the buffers are added in at the end: a thread never zeroes, fills or sums a whole copy of a big
+grid. Each chunk and the buffers' sum run in a fixed order, so the same rays and thread count give
+the same sums, bit for bit.
 """
 from __future__ import annotations
 
@@ -20,32 +29,13 @@ from numba import njit, prange
 
 from gmm_core.grid import Grid
 
-BLOCK = 4  # cells along each side of the blocks that rays are ordered by (2 to 4 measured best)
-# Sort only grids whose float64 hits and misses (16 bytes a cell) are four times a 2 MB L2 cache
-# or more: measured with 10 m rays in random directions, sorting lost 8% on 168k cells (2D, 0.05 m)
-# and gained 1.25x on 551k cells (3D, 0.25 m), 2.1-2.5x on 8.6M (3D, 0.1 m); on a 512 x 512 tile of
-# the Intel map (262k cells) it lost 10% (bench/correction.py, 146-155 vs 132-134 ms).
-SORT_MIN_CELLS = 2**19
+BLOCK = 4  # cells along each side of the blocks that rays are ordered by (2 to 8 measured alike)
+# Sort only grids whose float64 misses (8 bytes a cell) are half a 2 MB L2 cache or more: measured
+# with 10 m rays in random directions, sorting gained 1.1x on 168k cells (2D, 0.05 m), 1.7x on
+# 551k cells (3D, 0.25 m) and 2.7x on 8.6M (3D, 0.1 m).
+SORT_MIN_CELLS = 2**17
 MARGIN = 2  # cells added to each side of a chunk's slab: the traversal's round-off stays within one
-
-
-@njit(cache=True, inline="always")
-def _clip(o, e, lo, hi):
-    """Liang-Barsky: the parameter range [t0, t1] of o + t (e - o), t in [0, 1], inside [lo, hi]."""
-    t0, t1 = 0.0, 1.0
-    for a in range(3):
-        delta = e[a] - o[a]
-        if delta == 0.0:
-            if o[a] < lo[a] or o[a] > hi[a]:
-                return 1.0, 0.0
-            continue
-        ta = (lo[a] - o[a]) / delta
-        tb = (hi[a] - o[a]) / delta
-        if ta > tb:
-            ta, tb = tb, ta
-        t0 = max(t0, ta)
-        t1 = min(t1, tb)
-    return t0, t1
+END, WEIGHT, CODE = 0, 3, 4  # columns of a ray record: end x, y, z; weight; 2 * origin index + is_hit
 
 
 @njit(cache=True, inline="always")
@@ -55,65 +45,50 @@ def _cell(p, lo, resolution, first, last):
     return int(min(max(np.floor((p - lo) / resolution), first), last))
 
 
-@njit(cache=True, inline="always")
-def _axis_start(o, e, t0, t1, lo, resolution, n):
-    """Per axis: first cell, last cell, step, t of the first boundary, t between boundaries."""
-    delta = e - o
-    p0 = o + t0 * delta
-    first = _cell(p0, lo, resolution, 0, n - 1)
-    last = _cell(o + t1 * delta, lo, resolution, 0, n - 1)
-    if delta > 0.0:
-        return first, last, 1, (lo + (first + 1) * resolution - p0) / delta, resolution / delta
-    if delta < 0.0:
-        return first, last, -1, (lo + first * resolution - p0) / delta, -resolution / delta
-    return first, last, 0, np.inf, np.inf
-
-
-@njit(cache=True)
-def _sort_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims):
-    """The rays sorted (stable counting sort) by the block of their end point, clamped into the
-    grid, with blocks numbered z, then y, then x. Copies, not an index: reading rays through a
-    random index stalls the traversal on every ray."""
-    n_blocks = (dims + BLOCK - 1) // BLOCK
+@njit(cache=True, error_model="numpy")
+def _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort):
+    """The rays as records (columns END.., WEIGHT, CODE), sorted (stable counting sort) by the
+    block of their end point, clamped into the grid, with blocks numbered z, then y, then x, when
+    `sort`. Copies, not an index: reading rays through a random index stalls the traversal on
+    every ray; one array of records is also written faster than five arrays."""
     n = ends.shape[0]
+    n_blocks = (dims + BLOCK - 1) // BLOCK if sort else np.ones(3, np.int64)
+    to_blocks = 1.0 / (resolution * BLOCK) if sort else 0.0  # every ray in block 0 when not sorting
     keys = np.empty(n, np.int64)
+    start = np.zeros(n_blocks[0] * n_blocks[1] * n_blocks[2] + 1, np.int64)
     for r in range(n):
         key = 0
-        for a in range(2, -1, -1):
-            block = _cell(ends[r, a], grid_origin[a], resolution * BLOCK, 0, n_blocks[a] - 1)
-            key = key * n_blocks[a] + block
+        for a in range(2, -1, -1):  # clamped before the float becomes an int: no overflow
+            block = min(max((ends[r, a] - grid_origin[a]) * to_blocks, 0.0), n_blocks[a] - 1.0)
+            key = key * n_blocks[a] + np.int64(block)
         keys[r] = key
-    start = np.zeros(n_blocks[0] * n_blocks[1] * n_blocks[2] + 1, np.int64)
-    for key in keys:
         start[key + 1] += 1
     start = np.cumsum(start)
-    sorted_origin, sorted_ends = np.empty_like(ray_origin), np.empty_like(ends)
-    sorted_weights, sorted_hit = np.empty_like(weights), np.empty_like(is_hit)
+    rays = np.empty((n, 5))
     for r in range(n):
         i = start[keys[r]]
         start[keys[r]] += 1
-        sorted_origin[i] = ray_origin[r]
         for a in range(3):
-            sorted_ends[i, a] = ends[r, a]
-        sorted_weights[i] = weights[r]
-        sorted_hit[i] = is_hit[r]
-    return sorted_origin, sorted_ends, sorted_weights, sorted_hit
+            rays[i, END + a] = ends[r, a]
+        rays[i, WEIGHT] = weights[r]
+        rays[i, CODE] = 2 * ray_origin[r] + is_hit[r]
+    return rays
 
 
 @njit(cache=True)
-def _chunk_boxes(origins, ray_origin, ends, grid_origin, resolution, dims, axis, n_chunks):
+def _chunk_boxes(origins, rays, grid_origin, resolution, dims, axis, n_chunks):
     """Per chunk of rays, the cells [box[c, 0], box[c, 1]) it may reach: the whole grid but
     along `axis`, where it spans the chunk's sensor origins and end points (a segment stays
     between its ends), widened by MARGIN and clamped to the grid."""
     boxes = np.zeros((n_chunks, 2, 3), np.int64)
-    n = ends.shape[0]
+    n = rays.shape[0]
     for c in range(n_chunks):
         boxes[c, 1] = dims
         lo, hi = np.inf, -np.inf
         for r in range(n * c // n_chunks, n * (c + 1) // n_chunks):
-            o = origins[ray_origin[r], axis]
-            lo = min(lo, o, ends[r, axis])
-            hi = max(hi, o, ends[r, axis])
+            o = origins[np.int64(rays[r, CODE]) >> 1, axis]
+            lo = min(lo, o, rays[r, END + axis])
+            hi = max(hi, o, rays[r, END + axis])
         if lo > hi:  # no rays
             boxes[c, 1, axis] = 0
             continue
@@ -124,54 +99,93 @@ def _chunk_boxes(origins, ray_origin, ends, grid_origin, resolution, dims, axis,
     return boxes
 
 
-@njit(cache=True)
-def _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
-                 grid_origin, resolution, dims, box, offset, hits, misses):
-    """Trace rays first:last; cell (x, y, z) of the grid is entry (z ny + y) nx + x - offset
+@njit(cache=True, inline="always")
+def _slab(uo, ud, inv, n, t0, t1):
+    """Liang-Barsky: [t0, t1] narrowed to where uo + t ud lies in [0, n] (cell units)."""
+    if ud == 0.0:
+        return (t0, t1) if 0.0 <= uo <= n else (1.0, 0.0)
+    ta, tb = -uo * inv, (n - uo) * inv
+    return max(t0, min(ta, tb)), min(t1, max(ta, tb))
+
+
+@njit(cache=True, inline="always")
+def _axis(uo, ud, t0, t1, n):
+    """Along one axis (cell units): first cell, last cell, step (-1, 0, 1), and the coordinate
+    of the first boundary crossed. Branch-free: the signs of ud are random from ray to ray."""
+    first = min(max(np.int64(np.floor(uo + t0 * ud)), 0), n - 1)
+    last = min(max(np.int64(np.floor(uo + t1 * ud)), 0), n - 1)
+    up = np.int64(ud > 0.0)
+    return first, last, up - np.int64(ud < 0.0), np.float64(first + up)
+
+
+@njit(cache=True, fastmath=True)
+def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, hic, stride_c):
+    """cells[at:at + n]: the cells entered through n successive boundaries of one axis. At the
+    k-th the index along that axis is flat + k step (flattened, in place), the other two axes'
+    coordinates are ub + k dub and uc + k duc, floored and clamped to [lob, hib], [loc, hic]."""
+    for k in range(n):
+        kf = np.float64(k)
+        b = min(max(np.floor(ub + kf * dub), lob), hib)
+        c = min(max(np.floor(uc + kf * duc), loc), hic)
+        cells[at + k] = np.int64(flat + kf * step + b * stride_b + c * stride_c)
+    return at + n
+
+
+@njit(cache=True, error_model="numpy")  # 1 / 0 is inf: an axis the ray does not move along
+def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, dims, box, offset,
+                 hits, misses):
+    """Trace rays first_ray:last_ray; cell (x, y, z) of the grid is entry (z ny + y) nx + x - offset
     of hits and misses, which hold the cells of `box` along the slowest axis."""
     nx, ny, nz = dims[0], dims[1], dims[2]
-    x_lo, y_lo, z_lo = box[0, 0], box[0, 1], box[0, 2]
-    x_hi, y_hi, z_hi = box[1, 0], box[1, 1], box[1, 2]
-    hi = grid_origin + dims * resolution
-    for r in range(first, last):
-        o = origins[ray_origin[r]]
-        e = ends[r]
-        t0, t1 = _clip(o, e, grid_origin, hi)
+    sy, sz = np.float64(nx), np.float64(nx * ny)  # strides of y and z in the flat index
+    x_lo, y_lo, z_lo = np.float64(box[0, 0]), np.float64(box[0, 1]), np.float64(box[0, 2])
+    x_hi, y_hi, z_hi = np.float64(box[1, 0] - 1), np.float64(box[1, 1] - 1), np.float64(box[1, 2] - 1)
+    gx, gy, gz = grid_origin[0], grid_origin[1], grid_origin[2]
+    to_cells = 1.0 / resolution
+    cells = np.empty(nx + ny + nz + 1, np.int64)
+    for r in range(first_ray, last_ray):
+        code = np.int64(rays[r, CODE])
+        ox, oy, oz = origins[code >> 1, 0], origins[code >> 1, 1], origins[code >> 1, 2]
+        # Cell units: the grid is [0, n) along each axis and the ray is u(t) = uo + t ud, t in [0, 1].
+        uox, udx = (ox - gx) * to_cells, (rays[r, END] - ox) * to_cells
+        uoy, udy = (oy - gy) * to_cells, (rays[r, END + 1] - oy) * to_cells
+        uoz, udz = (oz - gz) * to_cells, (rays[r, END + 2] - oz) * to_cells
+        ix, iy, iz = 1.0 / udx, 1.0 / udy, 1.0 / udz
+        t0, t1 = _slab(uox, udx, ix, nx, 0.0, 1.0)
+        t0, t1 = _slab(uoy, udy, iy, ny, t0, t1)
+        t0, t1 = _slab(uoz, udz, iz, nz, t0, t1)
         if t0 > t1:
             continue
-        x, x_last, sx, tx, dtx = _axis_start(o[0], e[0], t0, t1, grid_origin[0], resolution, nx)
-        y, y_last, sy, ty, dty = _axis_start(o[1], e[1], t0, t1, grid_origin[1], resolution, ny)
-        z, z_last, sz, tz, dtz = _axis_start(o[2], e[2], t0, t1, grid_origin[2], resolution, nz)
-        n_steps = abs(x_last - x) + abs(y_last - y) + abs(z_last - z)
-        flat = (z * ny + y) * nx + x - offset
-        w = weights[r]
-        for _ in range(n_steps):
-            misses[flat] += w
-            # Step along the axis whose next boundary is nearest; round-off may point one step
-            # off the box at the very end, so stop there rather than leave it.
-            if tx <= ty and tx <= tz:
-                x += sx
-                if x < x_lo or x >= x_hi:
-                    break
-                tx += dtx
-                flat += sx
-            elif ty <= tz:
-                y += sy
-                if y < y_lo or y >= y_hi:
-                    break
-                ty += dty
-                flat += sy * nx
-            else:
-                z += sz
-                if z < z_lo or z >= z_hi:
-                    break
-                tz += dtz
-                flat += sz * nx * ny
+        x, x_last, step_x, bx = _axis(uox, udx, t0, t1, nx)
+        y, y_last, step_y, by = _axis(uoy, udy, t0, t1, ny)
+        z, z_last, step_z, bz = _axis(uoz, udz, t0, t1, nz)
+        n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
+        tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
+        cells[0] = (z * ny + y) * nx + x - offset
+        at = _enter(cells, 1, n_x, np.float64(x + step_x - offset), np.float64(step_x), uoy + tx * udy, step_x * ix * udy,
+                    y_lo, y_hi, sy, uoz + tx * udz, step_x * ix * udz, z_lo, z_hi, sz)
+        at = _enter(cells, at, n_y, (y + step_y) * sy - offset, step_y * sy, uox + ty * udx,
+                    step_y * iy * udx, x_lo, x_hi, 1.0, uoz + ty * udz, step_y * iy * udz, z_lo, z_hi, sz)
+        at = _enter(cells, at, n_z, (z + step_z) * sz - offset, step_z * sz, uox + tz * udx,
+                    step_z * iz * udx, x_lo, x_hi, 1.0, uoy + tz * udy, step_z * iz * udy, y_lo, y_hi, sy)
+        # The end cell: the last one of the axis whose last boundary comes latest (the start cell
+        # when the ray crosses none). Swapped to the back, it stays out of the loop of misses.
+        t_x = tx + (n_x - 1) * abs(ix) if n_x > 0 else -1.0
+        t_y = ty + (n_y - 1) * abs(iy) if n_y > 0 else -1.0
+        t_z = tz + (n_z - 1) * abs(iz) if n_z > 0 else -1.0
+        x_ends = (t_x >= t_y) & (t_x >= t_z)
+        y_ends = (t_y >= t_z) & ~x_ends
+        end = n_x if x_ends else (n_x + n_y if y_ends else at - 1)
+        end_cell = cells[end]
+        cells[end] = cells[at - 1]
+        w = rays[r, WEIGHT]
+        for i in range(at - 1):
+            misses[cells[i]] += w
         # The end cell holds the sample only when the ray ends inside the grid (t1 == 1).
-        if is_hit[r] and t1 >= 1.0:
-            hits[flat] += w
+        if code & 1 and t1 >= 1.0:
+            hits[end_cell] += w
         else:
-            misses[flat] += w
+            misses[end_cell] += w
 
 
 @njit(cache=True, parallel=True, nogil=True)  # the caller's other Python threads run while it traces
@@ -179,10 +193,10 @@ def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, 
     n_cells = dims[0] * dims[1] * dims[2]
     axis = 2 if dims[2] > 1 else 1  # the slowest array axis that has more than one cell
     stride = dims[0] if axis == 1 else dims[0] * dims[1]
-    if n_cells >= SORT_MIN_CELLS:
-        ray_origin, ends, weights, is_hit = _sort_rays(ray_origin, ends, weights, is_hit,
-                                                       grid_origin, resolution, dims)
-        boxes = _chunk_boxes(origins, ray_origin, ends, grid_origin, resolution, dims, axis, n_chunks)
+    sort = n_cells >= SORT_MIN_CELLS
+    rays = _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort)
+    if sort:
+        boxes = _chunk_boxes(origins, rays, grid_origin, resolution, dims, axis, n_chunks)
     else:  # a small grid: every chunk gets all of it, sparing the pass over the rays
         boxes = np.zeros((n_chunks, 2, 3), np.int64)
         boxes[:, 1] = dims
@@ -192,15 +206,15 @@ def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, 
         start[c + 1] = start[c] + (boxes[c, 1, axis] - boxes[c, 0, axis]) * stride
     hits, misses = np.zeros(n_cells), np.zeros(n_cells)
     hit_buffer, miss_buffer = np.zeros(start[-1]), np.zeros(start[-1])
-    n_rays = ends.shape[0]
+    n_rays = rays.shape[0]
     for c in prange(n_chunks):
         first, last = n_rays * c // n_chunks, n_rays * (c + 1) // n_chunks
         if c == 0:
-            _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
-                         grid_origin, resolution, dims, boxes[c], 0, hits, misses)
+            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c], 0,
+                         hits, misses)
         else:
-            _trace_chunk(origins, ray_origin, ends, weights, is_hit, first, last,
-                         grid_origin, resolution, dims, boxes[c], boxes[c, 0, axis] * stride,
+            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c],
+                         boxes[c, 0, axis] * stride,
                          hit_buffer[start[c]:start[c + 1]], miss_buffer[start[c]:start[c + 1]])
     for c in range(1, n_chunks):
         cells = slice(boxes[c, 0, axis] * stride, boxes[c, 1, axis] * stride)
@@ -214,14 +228,12 @@ def _trace_serial(origins, ray_origin, ends, weights, is_hit, grid_origin, resol
     """`_trace` on the calling thread alone, outside numba's threading layer: callers that trace
     from threads of their own (a map server's requests) need no lock around it."""
     n_cells = dims[0] * dims[1] * dims[2]
-    if n_cells >= SORT_MIN_CELLS:
-        ray_origin, ends, weights, is_hit = _sort_rays(ray_origin, ends, weights, is_hit,
-                                                       grid_origin, resolution, dims)
+    rays = _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims,
+                      n_cells >= SORT_MIN_CELLS)
     box = np.zeros((2, 3), np.int64)
     box[1] = dims
     hits, misses = np.zeros(n_cells), np.zeros(n_cells)
-    _trace_chunk(origins, ray_origin, ends, weights, is_hit, 0, ends.shape[0],
-                 grid_origin, resolution, dims, box, 0, hits, misses)
+    _trace_chunk(origins, rays, 0, rays.shape[0], grid_origin, resolution, dims, box, 0, hits, misses)
     return hits, misses
 
 
