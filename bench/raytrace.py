@@ -105,7 +105,7 @@ def main():
           "(M rays/s) | OctoMap, 1 core (M rays/s) | ours / OctoMap (1 core) |")
     print("|---|---|---|---|---|---|---|")
     for name, res, cells, one, two, octo in rows:
-        octo_cols = f"{octo / 1e6:.3f} | {one / octo:.0f}x" if octo else "- | -"
+        octo_cols = f"{octo / 1e6:.3f} | {one / octo:.1f}x" if octo else "- | -"
         print(f"| {name} | {res:g} m | {cells:.0f} | {one / 1e6:.2f} | {two / 1e6:.2f} | {octo_cols} |")
 
 

@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from gmm_core.grid import Grid
 
-BLOCK = 4  # cells along each side of the blocks that rays are ordered by (2 to 8 measured alike)
+BLOCK = 2  # cells along each side of the blocks that rays are ordered by (2 to 8 measured alike)
 # Sort only grids whose float64 misses (8 bytes a cell) are half a 2 MB L2 cache or more: measured
 # with 10 m rays in random directions, sorting gained 1.1x on 168k cells (2D, 0.05 m), 1.7x on
 # 551k cells (3D, 0.25 m) and 2.7x on 8.6M (3D, 0.1 m).
@@ -45,34 +45,41 @@ def _cell(p, lo, resolution, first, last):
     return int(min(max(np.floor((p - lo) / resolution), first), last))
 
 
-@njit(cache=True, error_model="numpy")
-def _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort):
-    """The rays as records (columns END.., WEIGHT, CODE), sorted (stable counting sort) by the
-    block of their end point, clamped into the grid, with blocks numbered z, then y, then x, when
-    `sort`. Copies, not an index: reading rays through a random index stalls the traversal on
-    every ray; one array of records is also written faster than five arrays."""
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort, rays, keys):
+    """Fill `rays` with the rays as records (columns END.., WEIGHT, CODE), sorted (stable counting
+    sort) by the block of their end point, clamped into the grid, with blocks numbered z, then y,
+    then x, when `sort` (`keys`: room for each ray's block). Copies, not an index: reading rays
+    through a random index stalls the traversal on every ray; one array of records is also written
+    faster than five arrays. Indices are unsigned where they can be: numba then skips the
+    wrap-around of negative indices."""
     n = ends.shape[0]
-    n_blocks = (dims + BLOCK - 1) // BLOCK if sort else np.ones(3, np.int64)
-    to_blocks = 1.0 / (resolution * BLOCK) if sort else 0.0  # every ray in block 0 when not sorting
-    keys = np.empty(n, np.int64)
-    start = np.zeros(n_blocks[0] * n_blocks[1] * n_blocks[2] + 1, np.int64)
-    for r in range(n):
+    if not sort:
+        for r in range(n):
+            for a in range(3):
+                rays[r, END + a] = ends[r, a]
+            rays[r, WEIGHT] = weights[r]
+            rays[r, CODE] = 2 * ray_origin[r] + is_hit[r]
+        return
+    n_blocks = (dims + BLOCK - 1) // BLOCK
+    to_blocks = 1.0 / (resolution * BLOCK)
+    for r in range(n):  # no other work in this loop: it vectorises
         key = 0
         for a in range(2, -1, -1):  # clamped before the float becomes an int: no overflow
             block = min(max((ends[r, a] - grid_origin[a]) * to_blocks, 0.0), n_blocks[a] - 1.0)
             key = key * n_blocks[a] + np.int64(block)
         keys[r] = key
+    start = np.zeros(n_blocks[0] * n_blocks[1] * n_blocks[2] + 1, np.uint64)
+    for key in keys:
         start[key + 1] += 1
     start = np.cumsum(start)
-    rays = np.empty((n, 5))
     for r in range(n):
         i = start[keys[r]]
-        start[keys[r]] += 1
+        start[keys[r]] = i + np.uint64(1)
         for a in range(3):
             rays[i, END + a] = ends[r, a]
         rays[i, WEIGHT] = weights[r]
         rays[i, CODE] = 2 * ray_origin[r] + is_hit[r]
-    return rays
 
 
 @njit(cache=True)
@@ -123,11 +130,12 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
     """cells[at:at + n]: the cells entered through n successive boundaries of one axis. At the
     k-th the index along that axis is flat + k step (flattened, in place), the other two axes'
     coordinates are ub + k dub and uc + k duc, floored and clamped to [lob, hib], [loc, hic]."""
-    for k in range(n):
+    out = cells[at:]  # indexed from 0 up, so no wrap-around of negative indices: stored as vectors
+    for k in range((n + 3) & -4):
         kf = np.float64(k)
         b = min(max(np.floor(ub + kf * dub), lob), hib)
         c = min(max(np.floor(uc + kf * duc), loc), hic)
-        cells[at + k] = np.int64(flat + kf * step + b * stride_b + c * stride_c)
+        out[k] = np.uint64(flat + kf * step + b * stride_b + c * stride_c)
     return at + n
 
 
@@ -142,7 +150,7 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
     x_hi, y_hi, z_hi = np.float64(box[1, 0] - 1), np.float64(box[1, 1] - 1), np.float64(box[1, 2] - 1)
     gx, gy, gz = grid_origin[0], grid_origin[1], grid_origin[2]
     to_cells = 1.0 / resolution
-    cells = np.empty(nx + ny + nz + 1, np.int64)
+    cells = np.empty(nx + ny + nz + 4, np.uint64)
     for r in range(first_ray, last_ray):
         code = np.int64(rays[r, CODE])
         ox, oy, oz = origins[code >> 1, 0], origins[code >> 1, 1], origins[code >> 1, 2]
@@ -189,13 +197,10 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
 
 
 @njit(cache=True, parallel=True, nogil=True)  # the caller's other Python threads run while it traces
-def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):
-    n_cells = dims[0] * dims[1] * dims[2]
+def _trace(origins, rays, grid_origin, resolution, dims, sorted_, n_chunks, hits, misses):
     axis = 2 if dims[2] > 1 else 1  # the slowest array axis that has more than one cell
     stride = dims[0] if axis == 1 else dims[0] * dims[1]
-    sort = n_cells >= SORT_MIN_CELLS
-    rays = _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort)
-    if sort:
+    if sorted_:
         boxes = _chunk_boxes(origins, rays, grid_origin, resolution, dims, axis, n_chunks)
     else:  # a small grid: every chunk gets all of it, sparing the pass over the rays
         boxes = np.zeros((n_chunks, 2, 3), np.int64)
@@ -204,7 +209,6 @@ def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, 
     start = np.zeros(n_chunks + 1, np.int64)
     for c in range(1, n_chunks):
         start[c + 1] = start[c] + (boxes[c, 1, axis] - boxes[c, 0, axis]) * stride
-    hits, misses = np.zeros(n_cells), np.zeros(n_cells)
     hit_buffer, miss_buffer = np.zeros(start[-1]), np.zeros(start[-1])
     n_rays = rays.shape[0]
     for c in prange(n_chunks):
@@ -220,20 +224,30 @@ def _trace(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, 
         cells = slice(boxes[c, 0, axis] * stride, boxes[c, 1, axis] * stride)
         hits[cells] += hit_buffer[start[c]:start[c + 1]]
         misses[cells] += miss_buffer[start[c]:start[c + 1]]
-    return hits, misses
 
 
 @njit(cache=True, nogil=True)
-def _trace_serial(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims):
+def _trace_serial(origins, rays, grid_origin, resolution, dims, hits, misses):
     """`_trace` on the calling thread alone, outside numba's threading layer: callers that trace
     from threads of their own (a map server's requests) need no lock around it."""
-    n_cells = dims[0] * dims[1] * dims[2]
-    rays = _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims,
-                      n_cells >= SORT_MIN_CELLS)
     box = np.zeros((2, 3), np.int64)
     box[1] = dims
-    hits, misses = np.zeros(n_cells), np.zeros(n_cells)
     _trace_chunk(origins, rays, 0, rays.shape[0], grid_origin, resolution, dims, box, 0, hits, misses)
+
+
+def _counts(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):
+    """Flat hit and miss counts of rays in 3D form (see trace_rays), traced in n_chunks. The large
+    arrays come from numpy, whose allocator asks for huge pages: numba's faults them in 4 kB pages,
+    which took 11 of the 32 ms of packing 10^6 rays."""
+    n_cells = int(np.prod(dims))
+    sort = n_cells >= SORT_MIN_CELLS
+    rays, keys = np.empty((len(ends), 5)), np.empty(len(ends) if sort else 0, np.uint64)
+    _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, sort, rays, keys)
+    hits, misses = np.zeros(n_cells), np.zeros(n_cells)
+    if n_chunks == 1:
+        _trace_serial(origins, rays, grid_origin, resolution, dims, hits, misses)
+    else:
+        _trace(origins, rays, grid_origin, resolution, dims, sort, n_chunks, hits, misses)
     return hits, misses
 
 
@@ -264,6 +278,5 @@ def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np
     rays = (_as_3d(origins, d, z_mid), np.ascontiguousarray(ray_origin, dtype=np.int64), _as_3d(ends, d, z_mid),
             np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(is_hit, dtype=np.bool_),
             grid_origin, grid.resolution, dims)
-    threads = threads or numba.get_num_threads()
-    hits, misses = _trace_serial(*rays) if threads == 1 else _trace(*rays, threads)
+    hits, misses = _counts(*rays, threads or numba.get_num_threads())
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)

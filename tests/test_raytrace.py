@@ -101,7 +101,7 @@ def chunked(grid, origins, ray_origin, ends, weights, is_hit, n_chunks):
     d = grid.dim
     z = grid.resolution / 2
     dims = np.array(list(grid.shape) + [1] * (3 - d))
-    hits, misses = raytrace._trace(raytrace._as_3d(origins, d, z), ray_origin, raytrace._as_3d(ends, d, z),
-                                   weights, is_hit, raytrace._as_3d(grid.origin, d, 0.0)[0],
-                                   grid.resolution, dims, n_chunks)
+    hits, misses = raytrace._counts(raytrace._as_3d(origins, d, z), ray_origin, raytrace._as_3d(ends, d, z),
+                                    weights, is_hit, raytrace._as_3d(grid.origin, d, 0.0)[0],
+                                    grid.resolution, dims, n_chunks)
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
