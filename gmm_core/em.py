@@ -27,6 +27,10 @@ _LLOYD_ITER = 5
 # component, so that the per-block M-step and candidate lists stay cheap next to the E-step.
 _MAX_BLOCKS = 4
 _BLOCK_POINTS_PER_COMPONENT = 10
+# Several k-means starts: each gets this many EM passes on the subset before the most likely goes
+# on; the starts' k-means seeds are this far apart.
+_TRIAL_PASSES = 8
+_TRIAL_SEED_STEP = 1_000_003
 
 
 @njit(cache=True)
@@ -331,7 +335,8 @@ def _e_step_block(points, features, point_cell, lo_i, hi_i, start, items, prec, 
 @njit(cache=True)
 def _refine(points, weights, means, covs, reg_covar, max_iter, tol):
     """Incremental EM in place, at most `max_iter` passes, until the mean log-likelihood of a
-    pass changes by less than `tol`; returns the number of passes.
+    pass changes by less than `tol`; returns the number of passes and the mean log-likelihood of
+    the last one.
 
     Point i goes to block i mod B, so each block thins the whole scan evenly. The first pass is
     plain EM; after it, the M-step runs after every block on that block's fresh sums plus the
@@ -380,25 +385,35 @@ def _refine(points, weights, means, covs, reg_covar, max_iter, tol):
         if abs(ll - previous) < tol:
             break
         previous = ll
-    return passes
+    return passes, ll
 
 
 @njit(cache=True)
-def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_polish_iter):
-    """Coarse to fine: k-means and EM on a seeded subset, then at most `max_polish_iter` passes
-    over every point.
+def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_polish_iter, n_init):
+    """Coarse to fine: on a seeded subset, `n_init` k-means starts get _TRIAL_PASSES passes of EM
+    each and the most likely one runs on to tol; then at most `max_polish_iter` passes over every
+    point.
 
     `points` are centred so that second moments keep their precision.
     """
     n, d = points.shape
     np.random.seed(seed)
     subset = points[np.random.permutation(n)[:init_points]] if n > init_points else points
-    labels = _kmeans_labels(subset, n_components, seed, _LLOYD_ITER)
+    features = _features(subset)
     weights = np.empty(n_components)
     means = np.empty((n_components, d))
     covs = np.empty((n_components, d, d))
-    _m_step(_labels_statistics(_features(subset), labels, n_components), reg_covar, weights, means, covs)
-    _refine(subset, weights, means, covs, reg_covar, max_iter, tol)
+    best = -np.inf
+    for trial in range(n_init):
+        labels = _kmeans_labels(subset, n_components, seed + _TRIAL_SEED_STEP * trial, _LLOYD_ITER)
+        w, m, c = np.empty(n_components), np.empty((n_components, d)), np.empty((n_components, d, d))
+        _m_step(_labels_statistics(features, labels, n_components), reg_covar, w, m, c)
+        _, ll = _refine(subset, w, m, c, reg_covar, _TRIAL_PASSES if n_init > 1 else max_iter, tol)
+        if trial == 0 or ll > best:
+            best = ll
+            weights[:], means[:], covs[:] = w, m, c
+    if n_init > 1:
+        _refine(subset, weights, means, covs, reg_covar, max_iter, tol)
     if n > init_points:
         _refine(points, weights, means, covs, reg_covar, min(max_iter, max_polish_iter), tol)
     return weights, means, covs
@@ -406,17 +421,19 @@ def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_p
 
 def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-4,
                 max_iter: int = 100, tol: float = 1e-3, seed: int = 0,
-                init_points_per_component: float = 40.0, max_polish_iter: int = 15) -> Mixture:
+                init_points_per_component: float = 40.0, max_polish_iter: int = 15,
+                n_init: int = 2) -> Mixture:
     """Maximum-likelihood mixture of `n_components` Gaussians for (n, d) points, by EM.
 
     `reg_covar` is added to every variance (as scikit-learn's reg_covar), so duplicate,
     collinear or single points still give positive-definite covariances. Components that
     end with no responsibility are dropped. `tol` bounds the change of the mean
     log-likelihood per point between passes, as in scikit-learn. EM first converges on a
-    seeded subset of `init_points_per_component * n_components` points; when there are more
-    points than that, at most `max_polish_iter` passes over all of them follow (the full-data
-    passes cost most and gain least: 15 reach scikit-learn's log-likelihood on 20,000-point
-    3D scans, docs/BENCHMARKS.md).
+    seeded subset of `init_points_per_component * n_components` points, from the best of
+    `n_init` k-means starts; when there are more points than that, at most `max_polish_iter`
+    passes over all of them follow (the full-data passes cost most and gain least). Measured on
+    20,000-point 3D scans (docs/BENCHMARKS.md): a second start lifts the mean log-likelihood
+    over seeds to scikit-learn's; the seed moves it far more than either setting does.
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] not in (2, 3):
@@ -429,6 +446,7 @@ def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-
     k = int(min(max(n_components, 1), n))
     shift = points.mean(axis=0)
     weights, means, covs = _em(points - shift, k, float(reg_covar), int(max_iter), float(tol), int(seed),
-                               max(int(init_points_per_component * k), 1), max(int(max_polish_iter), 1))
+                               max(int(init_points_per_component * k), 1), max(int(max_polish_iter), 1),
+                               max(int(n_init), 1))
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), means[keep] + shift, covs[keep], n)
