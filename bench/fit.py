@@ -7,8 +7,8 @@ log-likelihood, at most 100 iterations, k-means initialisation (ours: EM to tol 
 40 points per component, then at most 15 passes over all points, `fit_mixture`'s defaults).
 2D: every Intel scan, K = FitConfig().n_components(hits) (about 3 points per component); ours on
 all 910 scans, scikit-learn on every 10th. 3D: the three Kurt3D scans and the OctoMap scan,
-each subsampled (seeded) to 20,000 points, K = 100; times at seed 0, ours with its default two
-k-means starts and with one. The log-likelihood of one scan moves by about 0.03 nats/point from
+each subsampled (seeded) to 20,000 points, K = 100; times at seed 0, ours with its default (in
+3D) two k-means starts and with one. The log-likelihood of one scan moves by about 0.03 nats/point from
 one seed to another, for either EM, so the 3D comparison averages over seeds: 40 for ours,
 `--sklearn-seeds` (default 10, about 7 s each) for scikit-learn. Numba compile is timed
 separately, from an empty numba cache, and excluded from the fit times.
@@ -95,6 +95,8 @@ def scans_3d():
 
 def mean_and_error(values) -> tuple[float, float]:
     """Mean and its standard error."""
+    if len(values) < 2:
+        return float(np.mean(values)), float("nan")
     return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
 
