@@ -129,7 +129,11 @@ def _axis(uo, ud, t0, t1, n):
 def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, hic, stride_c):
     """cells[at:at + n]: the cells entered through n successive boundaries of one axis. At the
     k-th the index along that axis is flat + k step (flattened, in place), the other two axes'
-    coordinates are ub + k dub and uc + k duc, floored and clamped to [lob, hib], [loc, hic]."""
+    coordinates are ub + k dub and uc + k duc, floored and clamped to [lob, hib], [loc, hic].
+
+    The loop runs a multiple of 4 times, so the vector loop needs no scalar tail (a mispredicted
+    exit fewer per axis): up to 3 entries past at + n are scratch, which the caller leaves room
+    for and overwrites or ignores."""
     out = cells[at:]  # indexed from 0 up, so no wrap-around of negative indices: stored as vectors
     for k in range((n + 3) & -4):
         kf = np.float64(k)
@@ -150,7 +154,7 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
     x_hi, y_hi, z_hi = np.float64(box[1, 0] - 1), np.float64(box[1, 1] - 1), np.float64(box[1, 2] - 1)
     gx, gy, gz = grid_origin[0], grid_origin[1], grid_origin[2]
     to_cells = 1.0 / resolution
-    cells = np.empty(nx + ny + nz + 4, np.uint64)
+    cells = np.empty(nx + ny + nz + 4, np.uint64)  # start cell, crossings, _enter's 3 of scratch
     for r in range(first_ray, last_ray):
         code = np.int64(rays[r, CODE])
         ox, oy, oz = origins[code >> 1, 0], origins[code >> 1, 1], origins[code >> 1, 2]
@@ -170,8 +174,9 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
         n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
         tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
         cells[0] = (z * ny + y) * nx + x - offset
-        at = _enter(cells, 1, n_x, np.float64(x + step_x - offset), np.float64(step_x), uoy + tx * udy, step_x * ix * udy,
-                    y_lo, y_hi, sy, uoz + tx * udz, step_x * ix * udz, z_lo, z_hi, sz)
+        at = _enter(cells, 1, n_x, np.float64(x + step_x - offset), np.float64(step_x),
+                    uoy + tx * udy, step_x * ix * udy, y_lo, y_hi, sy,
+                    uoz + tx * udz, step_x * ix * udz, z_lo, z_hi, sz)
         at = _enter(cells, at, n_y, (y + step_y) * sy - offset, step_y * sy, uox + ty * udx,
                     step_y * iy * udx, x_lo, x_hi, 1.0, uoz + ty * udz, step_y * iy * udz, z_lo, z_hi, sz)
         at = _enter(cells, at, n_z, (z + step_z) * sz - offset, step_z * sz, uox + tz * udx,
