@@ -1,8 +1,10 @@
 """Expectation-maximisation for a Gaussian mixture (Sec. III-A), in numba.
 
 Initialised by seeded k-means++ and a few Lloyd iterations, like scikit-learn's GaussianMixture,
-so the two reach the same kind of optimum. Coarse to fine: EM converges on a seeded subset of
-about 40 points per component, then a bounded number of passes over every point polishes it.
+so the two reach the same kind of optimum; in 3D, two such starts get a few EM passes each and
+the more likely one goes on (the seed moves a 3D fit's log-likelihood more than anything else
+does). Coarse to fine: EM converges on a seeded subset of about 40 points per component, then a
+bounded number of passes over every point polishes it.
 The E-step only visits the components whose 5-sigma box holds the point (a hash grid of
 component boxes), so a 3D scan with many components costs a few component evaluations per
 point, not K; it is fused with the sums of the M-step, and the M-step runs after every block of
