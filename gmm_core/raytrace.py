@@ -39,10 +39,19 @@ END, WEIGHT, CODE = 0, 3, 4  # columns of a ray record: end x, y, z; weight; 2 *
 
 
 @njit(cache=True, inline="always")
-def _cell(p, lo, resolution, first, last):
-    """The cell of coordinate p along one axis, clamped to [first, last] before the float becomes
-    an int (a point far outside the grid must not overflow)."""
-    return int(min(max(np.floor((p - lo) / resolution), first), last))
+def _cell(p, lo, per_cell, first, last):
+    """The cell of coordinate p along one axis (cells of 1 / per_cell from lo), clamped to
+    [first, last] before the float becomes an int (a point far outside the grid must not overflow)."""
+    return np.int64(min(max(np.floor((p - lo) * per_cell), first), last))
+
+
+@njit(cache=True, inline="always")
+def _put(rays, i, ray_origin, ends, weights, is_hit, r):
+    """Ray r as record i."""
+    for a in range(3):
+        rays[i, END + a] = ends[r, a]
+    rays[i, WEIGHT] = weights[r]
+    rays[i, CODE] = 2 * ray_origin[r] + is_hit[r]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -56,18 +65,14 @@ def _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims,
     n = ends.shape[0]
     if not sort:
         for r in range(n):
-            for a in range(3):
-                rays[r, END + a] = ends[r, a]
-            rays[r, WEIGHT] = weights[r]
-            rays[r, CODE] = 2 * ray_origin[r] + is_hit[r]
+            _put(rays, r, ray_origin, ends, weights, is_hit, r)
         return
     n_blocks = (dims + BLOCK - 1) // BLOCK
-    to_blocks = 1.0 / (resolution * BLOCK)
+    per_block = 1.0 / (resolution * BLOCK)
     for r in range(n):  # no other work in this loop: it vectorises
         key = 0
-        for a in range(2, -1, -1):  # clamped before the float becomes an int: no overflow
-            block = min(max((ends[r, a] - grid_origin[a]) * to_blocks, 0.0), n_blocks[a] - 1.0)
-            key = key * n_blocks[a] + np.int64(block)
+        for a in range(2, -1, -1):
+            key = key * n_blocks[a] + _cell(ends[r, a], grid_origin[a], per_block, 0, n_blocks[a] - 1)
         keys[r] = key
     start = np.zeros(n_blocks[0] * n_blocks[1] * n_blocks[2] + 1, np.uint64)
     for key in keys:
@@ -76,10 +81,7 @@ def _pack_rays(ray_origin, ends, weights, is_hit, grid_origin, resolution, dims,
     for r in range(n):
         i = start[keys[r]]
         start[keys[r]] = i + np.uint64(1)
-        for a in range(3):
-            rays[i, END + a] = ends[r, a]
-        rays[i, WEIGHT] = weights[r]
-        rays[i, CODE] = 2 * ray_origin[r] + is_hit[r]
+        _put(rays, i, ray_origin, ends, weights, is_hit, r)
 
 
 @njit(cache=True)
@@ -99,8 +101,8 @@ def _chunk_boxes(origins, rays, grid_origin, resolution, dims, axis, n_chunks):
         if lo > hi:  # no rays
             boxes[c, 1, axis] = 0
             continue
-        boxes[c, 0, axis] = _cell(lo, grid_origin[axis], resolution, 0, dims[axis]) - MARGIN
-        boxes[c, 1, axis] = _cell(hi, grid_origin[axis], resolution, 0, dims[axis]) + MARGIN + 1
+        boxes[c, 0, axis] = _cell(lo, grid_origin[axis], 1.0 / resolution, 0, dims[axis]) - MARGIN
+        boxes[c, 1, axis] = _cell(hi, grid_origin[axis], 1.0 / resolution, 0, dims[axis]) + MARGIN + 1
         boxes[c, 0, axis] = max(boxes[c, 0, axis], 0)
         boxes[c, 1, axis] = min(boxes[c, 1, axis], dims[axis])
     return boxes
@@ -119,8 +121,8 @@ def _slab(uo, ud, inv, n, t0, t1):
 def _axis(uo, ud, t0, t1, n):
     """Along one axis (cell units): first cell, last cell, step (-1, 0, 1), and the coordinate
     of the first boundary crossed. Branch-free: the signs of ud are random from ray to ray."""
-    first = min(max(np.int64(np.floor(uo + t0 * ud)), 0), n - 1)
-    last = min(max(np.int64(np.floor(uo + t1 * ud)), 0), n - 1)
+    first = _cell(uo + t0 * ud, 0.0, 1.0, 0, n - 1)
+    last = _cell(uo + t1 * ud, 0.0, 1.0, 0, n - 1)
     up = np.int64(ud > 0.0)
     return first, last, up - np.int64(ud < 0.0), np.float64(first + up)
 
