@@ -402,9 +402,6 @@ def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_p
     np.random.seed(seed)
     subset = points[np.random.permutation(n)[:init_points]] if n > init_points else points
     features = _features(subset)
-    weights = np.empty(n_components)
-    means = np.empty((n_components, d))
-    covs = np.empty((n_components, d, d))
     best = -np.inf
     for trial in range(n_init):
         labels = _kmeans_labels(subset, n_components, seed + _TRIAL_SEED_STEP * trial, _LLOYD_ITER)
@@ -412,8 +409,7 @@ def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_p
         _m_step(_labels_statistics(features, labels, n_components), reg_covar, w, m, c)
         _, ll = _refine(subset, w, m, c, reg_covar, _TRIAL_PASSES if n_init > 1 else max_iter, tol)
         if trial == 0 or ll > best:
-            best = ll
-            weights[:], means[:], covs[:] = w, m, c
+            best, weights, means, covs = ll, w, m, c
     if n_init > 1:
         _refine(subset, weights, means, covs, reg_covar, max_iter, tol)
     if n > init_points:
