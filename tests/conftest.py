@@ -1,8 +1,29 @@
+"""Fixtures for every test; the helpers behind them live in tests/support/.
+
+Tests under tests/integration/ (processes, Zenoh, HTTP, Chromium, compose) are marked
+`integration`: `pytest -m "not integration"` runs the unit tests alone."""
+from __future__ import annotations
+
 from pathlib import Path
 
 import pytest
+import zenoh
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from services.zenoh_config import zenoh_config
+from support.paths import DATA
+from support.processes import Processes
+
+INTEGRATION = Path(__file__).parent / "integration"
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "integration: starts processes, Zenoh sessions, HTTP servers or a browser")
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if INTEGRATION in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.integration)
 
 
 @pytest.fixture(scope="session")
@@ -17,3 +38,28 @@ def intel_scans(data_dir):
     from services.datasets import read_scans
 
     return list(read_scans(data_dir / "carmen" / "intel-corrected.log.gz"))
+
+
+@pytest.fixture
+def procs(tmp_path):
+    """The test's `gmmap` subprocesses; every one still running is killed at the end."""
+    p = Processes(tmp_path)
+    try:
+        yield p
+    finally:
+        p.kill_all()
+
+
+@pytest.fixture
+def session_to():
+    """Open test-side Zenoh peers connected to a server; all closed at the end."""
+    opened = []
+
+    def open_(zport: int) -> zenoh.Session:
+        s = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
+        opened.append(s)
+        return s
+
+    yield open_
+    for s in opened:
+        s.close()

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import bz2
 import gzip
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,8 @@ import pytest
 from services.datasets import (DatasetError, count_scans, guess_format, match_by_timestamp,
                                read_scans)
 from services.datasets.carmen import load_flaser, saturation_range
+from support.paths import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 INTEL = DATA / "carmen" / "intel-corrected.log.gz"
 FREIBURG = DATA / "carmen" / "freiburg-079-corrected.log.gz"
 INTEL_RAW = DATA / "radish" / "intel.clf.bz2"

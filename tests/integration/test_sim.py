@@ -9,7 +9,6 @@ import subprocess
 import sys
 import time
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,8 +23,8 @@ from services.sim.relay import CountingRelay
 from services.sim.report import GRID_DELTA_CELL_BYTES, grid_state, scan_window
 from services.sim.run import slabs
 from services.sim.worlds import WORLDS
+from support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 GMMAP = [sys.executable, "-m", "services.cli"]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
 REPORT_KEYS = {"robots", "duration_s", "bytes_on_wire", "raw_scan_bytes", "grid_delta_bytes", "components", "auroc",

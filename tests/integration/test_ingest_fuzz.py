@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
+from support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_fuzzed_ingest_keeps_the_server_up_counts_every_rejection_and_stores_nothing_invalid():

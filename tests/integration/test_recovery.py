@@ -7,7 +7,8 @@ import signal
 import time
 
 from services.map_server.check import check_store
-from test_services import HALVES, acked_nodes, free_port, http_get, metric, procs, stored_nodes, wait_for  # noqa: F401
+from support.net import free_port, http_get, metric, wait_for
+from support.processes import HALVES, acked_nodes, stored_nodes
 
 RATE = "150"  # scans per second per agent: the 455 scans of a half take about 3 s
 
@@ -24,7 +25,7 @@ def assert_complete_and_sound(data, tmp_path) -> None:
     assert check.ok and check.scans == 910, (check.integrity, check.bad[:3])
 
 
-def test_router_killed_and_restarted_mid_run_loses_nothing(procs, data_dir, tmp_path):  # noqa: F811
+def test_router_killed_and_restarted_mid_run_loses_nothing(procs, data_dir, tmp_path):
     rport, data = free_port(), tmp_path / "data"
     router_args = ("router", "router", "--listen", f"tcp/127.0.0.1:{rport}")
     router = procs.ready(procs.start(*router_args), "gmmap router ready")
@@ -48,7 +49,7 @@ def test_router_killed_and_restarted_mid_run_loses_nothing(procs, data_dir, tmp_
     assert_complete_and_sound(data, tmp_path)
 
 
-def test_agent_killed_and_restarted_resumes_from_its_outbox(procs, data_dir, tmp_path):  # noqa: F811
+def test_agent_killed_and_restarted_resumes_from_its_outbox(procs, data_dir, tmp_path):
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     procs.server("server", data, zport, hport)
     options = ("--rate", RATE, "--resend", "0.5", "--timeout", "60")

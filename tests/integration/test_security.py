@@ -21,9 +21,10 @@ from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
 from services.map_server.store import Store
 from services.zenoh_config import zenoh_config
-from test_services import free_port, http_get, metric, procs, stored_nodes  # noqa: F401 - procs is a fixture
+from support.net import free_port, http_get, metric
+from support.paths import ROOT
+from support.processes import stored_nodes
 
-ROOT = Path(__file__).resolve().parents[1]
 SLICES = {"a": "0:30", "b": "455:485"}
 
 

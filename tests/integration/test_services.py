@@ -4,19 +4,10 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import signal
-import socket
-import sqlite3
-import subprocess
-import sys
-import time
-import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
 from gmm_core import FitConfig, Grid, Pose, fit_scan
 from gmm_core.metrics import grid_auroc
@@ -26,100 +17,10 @@ from gmm_core.sampling import scan_seed
 from protocol import Ack, MapQuery, MapReply, ScanMessage, ack_key, decode, encode, poses_key, scan_key
 from services.agent.map_client import MapQueryError, query_bytes
 from services.replay import data_extent
-from services.zenoh_config import zenoh_config
+from support.net import free_port, http_get, metric, wait_for
+from support.processes import HALVES, acked_nodes, store_db, stored_nodes
 
-ROOT = Path(__file__).resolve().parents[1]
-HALVES = {"a": "0:455", "b": "455:910"}
 RESOLUTION = 0.1
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(condition, timeout: float, what: str, interval: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
-
-
-class Processes:
-    """Subprocesses of one test, each logging to a file; all killed at the end."""
-
-    def __init__(self, tmp_path: Path):
-        self.tmp = tmp_path
-        self.running: list[subprocess.Popen] = []
-        self.env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
-
-    def start(self, name: str, *args: str) -> subprocess.Popen:
-        log = open(self.tmp / f"{name}.log", "ab")
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.tmp, env=self.env,
-                                stdout=log, stderr=subprocess.STDOUT)
-        proc.log_path = self.tmp / f"{name}.log"
-        self.running.append(proc)
-        return proc
-
-    def log(self, proc) -> str:
-        return proc.log_path.read_text(errors="replace")
-
-    def ready(self, proc, banner: str) -> subprocess.Popen:
-        wait_for(lambda: banner in self.log(proc) or proc.poll() is not None, 30, banner)
-        assert proc.poll() is None, self.log(proc)
-        return proc
-
-    def server(self, name: str, data: Path, zport: int, hport: int, *zenoh: str) -> subprocess.Popen:
-        zenoh = zenoh or ("--zenoh-listen", f"tcp/127.0.0.1:{zport}")
-        proc = self.start(name, "server", *zenoh, "--http", f"127.0.0.1:{hport}", "--data-dir", str(data))
-        return self.ready(proc, "gmmap server ready")
-
-    def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
-        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
-                          "--source", f"carmen:{data_dir / 'radish' / 'intel.clf.bz2'}",
-                          "--corrections", str(data_dir / "carmen" / "intel-corrected.log.gz"),
-                          "--scans", HALVES[robot], "--outbox", str(self.tmp / f"outbox-{robot}.db"), *extra)
-
-    def finish(self, proc, timeout: float) -> int:
-        try:
-            return proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{proc.args[3:5]} still running after {timeout} s:\n{self.log(proc)[-3000:]}")
-
-    def kill_all(self) -> None:
-        for proc in self.running:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-
-
-@pytest.fixture
-def procs(tmp_path):
-    p = Processes(tmp_path)
-    try:
-        yield p
-    finally:
-        p.kill_all()
-
-
-@pytest.fixture
-def session_to():
-    """Open test-side Zenoh peers connected to a server; all closed at the end."""
-    opened = []
-
-    def open_(zport: int) -> zenoh.Session:
-        s = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
-        opened.append(s)
-        return s
-
-    yield open_
-    for s in opened:
-        s.close()
 
 
 @pytest.fixture(scope="module")
@@ -146,39 +47,6 @@ def served_map(session, grid: Grid) -> tuple[bytes, np.ndarray]:
     reply = decode(raw, expect=MapReply, max_bytes=len(raw))
     assert reply.probabilities.shape == grid.array_shape
     return raw, reply.probabilities
-
-
-def http_get(port: int, path: str) -> bytes:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as response:
-        return response.read()
-
-
-def metric(text: str, name: str, **labels) -> float:
-    """Sum of a Prometheus sample over the series whose labels include `labels`."""
-    total = 0.0
-    for line in text.splitlines():
-        if line.startswith(name + "{") or line.startswith(name + " "):
-            series, value = line.rsplit(" ", 1)
-            if all(f'{k}="{v}"' in series for k, v in labels.items()):
-                total += float(value)
-    return total
-
-
-def store_db(data: Path) -> sqlite3.Connection:
-    return sqlite3.connect(f"file:{data / 'gmmap.db'}?mode=ro", uri=True, timeout=10)
-
-
-def stored_nodes(data: Path, robot: str) -> set[int]:
-    with store_db(data) as db:
-        return {n for (n,) in db.execute("SELECT node FROM scans WHERE robot = ?", (robot,))}
-
-
-def acked_nodes(outbox: Path) -> set[int]:
-    db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
-    try:
-        return {n for (n,) in db.execute("SELECT id FROM acked WHERE kind = 'scan'")}
-    finally:
-        db.close()
 
 
 def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, data_dir, tmp_path):

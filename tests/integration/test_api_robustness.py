@@ -21,9 +21,9 @@ from services.api import create_app
 from services.map_server.fleet_map import FleetMap
 from services.map_server.state import ServerState
 from services.zenoh_config import zenoh_config
-from test_api import Server, get
-from test_api import post as post_json
-from test_services import free_port, procs  # noqa: F401 - procs is a fixture
+from support.net import free_port, get
+from support.net import post as post_json
+from support.uvicorn_thread import Server
 
 SCHEMATHESIS = Path(sys.executable).with_name("schemathesis")
 
