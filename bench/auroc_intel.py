@@ -19,7 +19,7 @@ from tqdm import tqdm
 from gmm_core import FitConfig, Grid
 from gmm_core.metrics import grid_auroc
 from gmm_core.occupancy import map_estimate
-from gmm_core.reconstruct import count_beams
+from gmm_core.reconstruct import ReconstructionConfig, count_beams
 from services.datasets import keep_beams, read_scans
 from services.replay import data_extent, replay
 
@@ -73,7 +73,7 @@ def main() -> None:
             print(f"| {ppc} points/component, N_p = {prior} | "
                   f"{grid_auroc(map_estimate(m.hits, m.misses, prior), *truth):.4f} |")
     for spc in (1.0, 4.0):
-        m = replay(sub, resolution=0.05, bbox=bbox, samples_per_cell=spc)
+        m = replay(sub, resolution=0.05, bbox=bbox, reconstruction=ReconstructionConfig(samples_per_cell=spc))
         print(f"| {spc} samples per cell | {grid_auroc(m.prob, *truth):.4f} |")
 
     t0 = time.perf_counter()

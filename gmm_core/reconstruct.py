@@ -7,16 +7,31 @@ is the plain counting occupancy grid from the raw beams, through the same ray tr
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import numpy as np
 
 from gmm_core.grid import Grid
+from gmm_core.occupancy import DEFAULT_PRIOR
 from gmm_core.pose import Pose
 from gmm_core.raytrace import trace_rays
 from gmm_core.sampling import scan_rays
 from gmm_core.scan import ScanModel
+from gmm_core.validation import require_number
 
 RAYS_PER_BATCH = 2_000_000  # bounds memory: rays are traced in batches and their counts added
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """How occupancy is rebuilt from mixtures (the `reconstruction` section of the configuration)."""
+
+    samples_per_cell: float = 4.0  # Monte-Carlo samples per cell of the queried resolution (Sec. III-C3), > 0
+    prior: float = DEFAULT_PRIOR  # N_p of Eq. 11, pseudo-counts, > 0
+
+    def __post_init__(self):
+        require_number("reconstruction.samples_per_cell", self.samples_per_cell, positive=True)
+        require_number("reconstruction.prior", self.prior, positive=True)
 
 
 def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

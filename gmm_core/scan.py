@@ -1,12 +1,13 @@
 """One scan as two mixtures: occupied (hit points) and free (no-return beams), Sec. III-A/B."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from gmm_core.em import fit_mixture
 from gmm_core.mixture import Mixture
+from gmm_core.validation import require_count, require_number
 
 
 @dataclass(frozen=True)
@@ -39,24 +40,44 @@ class ScanModel:
         return self.occupied.n_components + self.free.n_components
 
 
+DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
+
+
 @dataclass(frozen=True)
 class FitConfig:
-    """How a scan becomes mixtures.
+    """How a scan becomes mixtures (the `fit` section of the configuration).
 
     The number of components follows the data and a target resolution (Sec. IV-C): about
     `points_per_component` points each, so a sparse scan gets few and a dense one many, but no
     more than the cells of size `component_size` that the points occupy (a dense 3D scan needs
     one component per patch of surface, not one per three points), and no more than
-    `max_components`, which bounds the message size.
+    `max_components`, which bounds the message size. `for_dimension` resolves the one default
+    that depends on the scan: `component_size` None means none in 2D and
+    `DENSE_3D_COMPONENT_SIZE` in 3D.
     """
 
-    points_per_component: float = 3.0
-    component_size: float | None = None  # m; None: points_per_component alone decides
-    max_components: int = 4096
-    max_range: float = 10.0  # where no-return beams end (long free rays bleed through walls)
-    reg_covar: float = 1e-4  # variance floor, m^2: about the sensor's 1 cm range noise
-    max_iter: int = 100
-    tol: float = 1e-3
+    points_per_component: float = 3.0  # points per component, > 0
+    component_size: float | None = None  # m, > 0; None: none in 2D, DENSE_3D_COMPONENT_SIZE in 3D
+    max_components: int = 4096  # per mixture, >= 1
+    max_range: float = 10.0  # m, where no-return beams end (long free rays bleed through walls)
+    reg_covar: float = 1e-4  # m^2, variance floor: about the sensor's 1 cm range noise
+    max_iter: int = 100  # EM iterations, >= 1
+    tol: float = 1e-3  # EM stops when the mean log-likelihood gains less than this, nats per point
+
+    def __post_init__(self):
+        for name in ("points_per_component", "max_range", "reg_covar"):
+            require_number(f"fit.{name}", getattr(self, name), positive=True)
+        require_number("fit.tol", self.tol, positive=False)
+        if self.component_size is not None:
+            require_number("fit.component_size", self.component_size, positive=True)
+        for name in ("max_components", "max_iter"):
+            require_count(f"fit.{name}", getattr(self, name))
+
+    def for_dimension(self, dim: int) -> FitConfig:
+        """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
+        if self.component_size is None and dim == 3:
+            return replace(self, component_size=DENSE_3D_COMPONENT_SIZE)
+        return self
 
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:

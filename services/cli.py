@@ -7,8 +7,48 @@ import time
 
 import numpy as np
 
+from services.config import GmmapConfig, load_config
+from services.zenoh_config import DEFAULT_ENDPOINT
 
 SIM_WORLDS = ["mine", "office", "warehouse"]  # services.sim.worlds.WORLDS, without importing numba here
+DEFAULTS = GmmapConfig()
+
+
+def _setting(p: argparse.ArgumentParser, flag: str, key: str, **kwargs) -> None:
+    """A flag that sets field `key` ("section.field") of the configuration; its default is the
+    section's own, shown in the help, and applies only when neither the flag nor --config sets it."""
+    section, name = key.split(".")
+    default = getattr(getattr(DEFAULTS, section), name)
+    if kwargs.get("action") != "store_true":
+        kwargs.setdefault("metavar", None if "choices" in kwargs else flag.lstrip("-").upper().replace("-", "_"))
+        if kwargs.get("action") != "append" and default is not None:
+            kwargs["help"] = f"{kwargs.get('help', '')} (default {default})".strip()
+    p.add_argument(flag, dest=key, default=argparse.SUPPRESS, **kwargs)
+
+
+def _config_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", default=None,
+                   help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim] settings; "
+                        "flags given here win over it")
+
+
+def _fit_flags(p: argparse.ArgumentParser) -> None:
+    _setting(p, "--max-range", "fit.max_range", type=float, help="where no-return beams end, m")
+    _setting(p, "--points-per-component", "fit.points_per_component", type=float,
+             help="about this many points per component")
+    _setting(p, "--component-size", "fit.component_size", type=float, metavar="M",
+             help="at most one component per occupied cell of this size, m (default: none in 2D, 1.0 in 3D)")
+    _setting(p, "--max-components", "fit.max_components", type=int, metavar="K", help="per mixture")
+
+
+def _resolved(args) -> GmmapConfig:
+    """--config, then the flags that were given, over the defaults."""
+    overrides: dict[str, dict] = {}
+    for key, value in vars(args).items():
+        if "." in key:
+            section, name = key.split(".")
+            overrides.setdefault(section, {})[name] = value
+    return load_config(args.config, overrides)
 
 
 def _floats(text: str) -> list[float]:
@@ -31,16 +71,6 @@ def _progress_bars():
     return start, bars
 
 
-def _fit_config(args, dim: int):
-    from gmm_core import FitConfig
-
-    component_size = args.component_size
-    if component_size is None and dim == 3:
-        component_size = 1.0  # dense 3D scans: about one component per square metre of surface
-    return FitConfig(max_range=args.max_range, points_per_component=args.points_per_component,
-                     component_size=component_size)
-
-
 def cmd_replay(args) -> int:
     from services.datasets import count_scans, read_scans
     from services.render import occupancy_png
@@ -55,10 +85,10 @@ def cmd_replay(args) -> int:
     scans = list(tqdm(read_scans(args.log, args.format, keep_fraction=args.keep_fraction, seed=args.seed, **options),
                       total=total, desc="read", unit="scan", file=sys.stderr, leave=False))
     start, bars = _progress_bars()
-    config = _fit_config(args, scans[0].pose.dim if scans else 2)
-    result = replay(scans, resolution=args.resolution, bbox=args.bbox, method=args.method, config=config,
-                    seed=args.seed, samples_per_cell=args.samples_per_cell, prior=args.prior,
-                    encoding=args.encoding, progress=start)
+    config = _resolved(args)
+    result = replay(scans, resolution=args.resolution, bbox=args.bbox, method=args.method,
+                    config=config.fit.for_dimension(scans[0].pose.dim if scans else 2),
+                    seed=args.seed, reconstruction=config.reconstruction, encoding=args.encoding, progress=start)
     for bar in bars:
         bar.close()
     g = result.grid
@@ -84,7 +114,7 @@ def cmd_inspect(args) -> int:
 
     scans = list(read_scans(args.log, args.format))
     dim = scans[0].pose.dim if scans else 2
-    config = _fit_config(args, dim)
+    config = _resolved(args).fit.for_dimension(dim)
     start, bars = _progress_bars()
     models = fit_scans(scans, config, start("fit", len(scans)))
     for bar in bars:
@@ -115,32 +145,26 @@ def _logging(verbose: bool) -> None:
 
 
 def cmd_server(args) -> int:
-    from services.map_server.server import ServerOptions, run_server
+    from services.map_server.server import run_server
 
     _logging(args.verbose)
-    return run_server(ServerOptions(
-        fleet=args.fleet, zenoh_listen=tuple(e for e in args.zenoh_listen or () if e), zenoh_connect=tuple(args.zenoh_connect or ()),
-        zenoh_config=args.zenoh_config, http=args.http or None, data_dir=args.data_dir,
-        synchronous=args.synchronous, robot_quota_mb=args.robot_quota_mb, trace_threads=args.trace_threads))
+    config = _resolved(args)
+    return run_server(config.server, config.reconstruction)
 
 
 def cmd_router(args) -> int:
     from services.router import run_router
 
     _logging(args.verbose)
-    return run_router(args.listen, args.connect or [], args.zenoh_config)
+    return run_router(args.listen or [DEFAULT_ENDPOINT], args.connect or [], args.zenoh_config)
 
 
 def cmd_agent(args) -> int:
-    from services.agent.agent import AgentOptions, run_agent
+    from services.agent.agent import run_agent
 
     _logging(args.verbose)
-    return run_agent(AgentOptions(
-        robot=args.robot, source=args.source, fleet=args.fleet, zenoh_connect=tuple(args.zenoh_connect),
-        zenoh_config=args.zenoh_config, corrections=args.corrections, scans=args.scans, rate=args.rate,
-        outbox=args.outbox, encoding=args.encoding, update_every=args.update_every,
-        odometry_only=args.odometry_only, max_range=args.max_range, component_size=args.component_size,
-        resend_s=args.resend, timeout=args.timeout))
+    config = _resolved(args)
+    return run_agent(config.agent, config.fit)
 
 
 def cmd_sim(args) -> int:
@@ -155,6 +179,12 @@ def cmd_demo(args) -> int:
     from services.sim.demo import run_demo
 
     return run_demo(args.http, args.duration)
+
+
+def _reconstruction_flags(p: argparse.ArgumentParser) -> None:
+    _setting(p, "--samples-per-cell", "reconstruction.samples_per_cell", type=float,
+             help="Monte-Carlo samples per cell of the queried resolution")
+    _setting(p, "--prior", "reconstruction.prior", type=float, help="N_p of Eq. 11")
 
 
 def _fleet_id(text: str) -> str:
@@ -180,80 +210,81 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--method", choices=["mc", "analytic", "raw"], default="mc",
                    help="mc: Monte Carlo (Eq. 11); analytic: per-cell evidence, Eq. 5/10 (2D); raw: counting grid")
-    p.add_argument("--max-range", type=float, default=10.0, help="where no-return beams end, m")
-    p.add_argument("--points-per-component", type=float, default=3.0)
-    p.add_argument("--component-size", type=float, default=None,
-                   help="at most one component per occupied cell of this size, m (default: none in 2D, 1.0 in 3D)")
-    p.add_argument("--samples-per-cell", type=float, default=4.0)
-    p.add_argument("--prior", type=float, default=0.2, help="N_p of Eq. 11")
+    _fit_flags(p)
+    _reconstruction_flags(p)
     p.add_argument("--origin", type=_floats, default=None, help="sensor origin x,y,z of an xyz file")
     p.add_argument("--encoding", choices=["q", "f32", "none"], default="q",
                    help="pass every scan model through this wire encoding first (default q)")
     p.add_argument("--out", default=None, help="map.npz")
     p.add_argument("--png", default=None, help="map.png")
+    _config_flag(p)
     p.set_defaults(run=cmd_replay)
 
     p = sub.add_parser("inspect", help="fit a log and report encoded bytes against the raw scans")
     p.add_argument("log")
     p.add_argument("--format", choices=["carmen", "kurt3d", "xyz"], default=None)
     p.add_argument("--encoding", choices=["q", "f32"], default="q")
-    p.add_argument("--max-range", type=float, default=10.0)
-    p.add_argument("--points-per-component", type=float, default=3.0)
-    p.add_argument("--component-size", type=float, default=None)
+    _fit_flags(p)
     p.add_argument("--json", action="store_true")
+    _config_flag(p)
     p.set_defaults(run=cmd_inspect)
 
     p = sub.add_parser("server", help="map server: Zenoh ingest and queryable, SQLite store, HTTP API")
-    p.add_argument("--fleet", type=_fleet_id, default="default")
-    p.add_argument("--zenoh-listen", action="append", metavar="EP",
-                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
-    p.add_argument("--zenoh-connect", action="append", metavar="EP", help="router or peer to connect to (repeatable)")
-    p.add_argument("--zenoh-config", metavar="FILE.json5", help="Zenoh config file (scouting stays off unless it says so)")
-    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="HTTP address; '' for none")
-    p.add_argument("--data-dir", default="./gmmap-data")
-    p.add_argument("--synchronous", choices=["normal", "full"], default="normal",
-                   help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
-    p.add_argument("--robot-quota-mb", type=float, default=512.0, metavar="MIB",
-                   help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
-    p.add_argument("--trace-threads", type=int, metavar="N",
-                   help="tracer threads that sample and trace tiles; a large update is split among them "
-                        "(default: one per core)")
+    _setting(p, "--fleet", "server.fleet", type=_fleet_id)
+    _setting(p, "--zenoh-listen", "server.zenoh_listen", action="append", metavar="EP",
+             help=f"endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT}, none with --zenoh-connect)")
+    _setting(p, "--zenoh-connect", "server.zenoh_connect", action="append", metavar="EP",
+             help="router or peer to connect to (repeatable)")
+    _setting(p, "--zenoh-config", "server.zenoh_config", metavar="FILE.json5",
+             help="Zenoh config file (scouting stays off unless it says so)")
+    _setting(p, "--http", "server.http", metavar="HOST:PORT", help="HTTP address; '' for none")
+    _setting(p, "--data-dir", "server.data_dir")
+    _setting(p, "--synchronous", "server.synchronous", choices=["normal", "full"],
+             help="SQLite fsync policy: normal survives a crash of the process, full also power loss")
+    _setting(p, "--robot-quota-mb", "server.robot_quota_mb", type=float, metavar="MIB",
+             help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)")
+    _setting(p, "--trace-threads", "server.trace_threads", type=int, metavar="N",
+             help="tracer threads that sample and trace tiles; a large update is split among them "
+                  "(default: one per core)")
+    _reconstruction_flags(p)
+    _config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 
     p = sub.add_parser("router", help="a Zenoh router (Python library), for setups without zenohd")
-    p.add_argument("--listen", action="append", metavar="EP", help="default tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--listen", action="append", metavar="EP", help=f"default {DEFAULT_ENDPOINT} (repeatable)")
     p.add_argument("--connect", action="append", metavar="EP", help="other routers (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE.json5")
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_router)
 
     p = sub.add_parser("agent", help="robot agent: fit scans, publish them and pose-graph updates until acknowledged")
-    p.add_argument("--robot", type=_fleet_id, required=True)
-    p.add_argument("--fleet", type=_fleet_id, default="default")
-    p.add_argument("--zenoh-connect", action="append", metavar="EP", help="default tcp/127.0.0.1:7447 (repeatable)")
-    p.add_argument("--zenoh-config", metavar="FILE.json5")
-    p.add_argument("--source", required=True, metavar="carmen:PATH|kurt3d:DIR|xyz:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
-                   help="a log, or robot INDEX of a simulated fleet (needs --scans A:B)")
-    p.add_argument("--corrections", metavar="PATH",
-                   help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates")
-    p.add_argument("--scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
-    p.add_argument("--rate", type=float, default=0.0, help="scans per second (default: as fast as fitted)")
-    p.add_argument("--outbox", metavar="PATH", help="durable outbox (default ./gmmap-data/outbox-<robot>.db)")
-    p.add_argument("--encoding", choices=["q", "f32"], default="q")
-    p.add_argument("--update-every", type=int, default=None, metavar="N",
-                   help="scans between pose-graph updates (0: only at the end; default 100, "
-                        "or a sim source's loop-closure period of 10 s)")
-    p.add_argument("--odometry-only", action="store_true",
-                   help="with --corrections: publish the matched scans but no pose-graph updates")
-    p.add_argument("--max-range", type=float, default=10.0)
-    p.add_argument("--component-size", type=float, default=None, metavar="M",
-                   help="at most one component per occupied cell of this size (default: none in 2D, 1.0 m in 3D)")
-    p.add_argument("--resend", type=float, default=1.0, metavar="S",
-                   help="resend what is unacknowledged after at least S s (longer when Acks come slowly, "
-                        "doubling with each resend)")
-    p.add_argument("--timeout", type=float, default=120.0, metavar="S",
-                   help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)")
+    _setting(p, "--robot", "agent.robot", type=_fleet_id, help="required, here or in --config")
+    _setting(p, "--fleet", "agent.fleet", type=_fleet_id)
+    _setting(p, "--zenoh-connect", "agent.zenoh_connect", action="append", metavar="EP",
+             help=f"default {DEFAULT_ENDPOINT} (repeatable)")
+    _setting(p, "--zenoh-config", "agent.zenoh_config", metavar="FILE.json5")
+    _setting(p, "--source", "agent.source", metavar="carmen:PATH|kurt3d:DIR|xyz:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
+             help="a log, or robot INDEX of a simulated fleet (needs --scans A:B); required, here or in --config")
+    _setting(p, "--corrections", "agent.corrections", metavar="PATH",
+             help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates")
+    _setting(p, "--scans", "agent.scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
+    _setting(p, "--rate", "agent.rate", type=float, help="scans per second (0: as fast as fitted)")
+    _setting(p, "--outbox", "agent.outbox", metavar="PATH",
+             help="durable outbox (default ./gmmap-data/outbox-<robot>.db)")
+    _setting(p, "--encoding", "agent.encoding", choices=["q", "f32"])
+    _setting(p, "--update-every", "agent.update_every", type=int, metavar="N",
+             help="scans between pose-graph updates (0: only at the end; default 100, "
+                  "or a sim source's loop-closure period of 10 s)")
+    _setting(p, "--odometry-only", "agent.odometry_only", action="store_true",
+             help="with --corrections: publish the matched scans but no pose-graph updates")
+    _fit_flags(p)
+    _setting(p, "--resend", "agent.resend_s", type=float, metavar="S",
+             help="resend what is unacknowledged after at least S s (longer when Acks come slowly, "
+                  "doubling with each resend)")
+    _setting(p, "--timeout", "agent.timeout", type=float, metavar="S",
+             help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)")
+    _config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_agent)
 
@@ -282,13 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    # append-actions cannot have a replaceable default; a server that connects need not listen
-    if args.command == "server" and args.zenoh_listen is None and args.zenoh_connect is None:
-        args.zenoh_listen = ["tcp/127.0.0.1:7447"]
-    if args.command == "router" and args.listen is None:
-        args.listen = ["tcp/127.0.0.1:7447"]
-    if args.command == "agent" and args.zenoh_connect is None:
-        args.zenoh_connect = ["tcp/127.0.0.1:7447"]
+    if getattr(args, "server.zenoh_listen", None) is not None:  # `--zenoh-listen ''`: listen on nothing
+        setattr(args, "server.zenoh_listen", [e for e in getattr(args, "server.zenoh_listen") if e])
     try:
         return args.run(args)
     except (ValueError, OSError) as exc:  # DatasetError and ProtocolError are ValueErrors

@@ -8,8 +8,8 @@ import numpy as np
 
 from gmm_core import FitConfig, Grid, ScanModel, fit_scan
 from gmm_core.analytic import analytic_map_2d
-from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
-from gmm_core.reconstruct import count_beams, reconstruct
+from gmm_core.occupancy import map_estimate
+from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import scan_seed
 from gmm_core.pose import Pose
 from protocol import ScanMessage, decode, encode
@@ -61,8 +61,7 @@ def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
 
 def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[float] | None = None,
            method: str = "mc", config: FitConfig = FitConfig(), seed: int = 0,
-           samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
-           encoding: str = "q",
+           reconstruction: ReconstructionConfig = ReconstructionConfig(), encoding: str = "q",
            progress: Callable[[str, int, int], Callable[[int], None]] | None = None) -> ReplayMap:
     """The occupancy map of `scans` on the grid of `bbox` (min corner exact) or the data's extent.
 
@@ -96,5 +95,5 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
         hits, misses = hits.astype(np.float32), misses.astype(np.float32)
     elif method == "mc":
         hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
-                                   samples_per_cell=samples_per_cell, progress=tick("trace", len(scans)))
-    return ReplayMap(grid, hits, misses, map_estimate(hits, misses, prior), len(scans), components)
+                                   samples_per_cell=reconstruction.samples_per_cell, progress=tick("trace", len(scans)))
+    return ReplayMap(grid, hits, misses, map_estimate(hits, misses, reconstruction.prior), len(scans), components)

@@ -2,7 +2,7 @@
 
 The library's defaults listen on every interface and scout by multicast; here nothing is
 discovered implicitly: endpoints come from the command line or a config file, and scouting
-stays off unless that file turns it on (DESIGN.md, "Zenoh notes").
+stays off unless that file turns it on (docs/ARCHITECTURE.md, "Zenoh").
 """
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import zenoh
 
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # where a server or router listens, and agents connect, by default
 RECONNECT_MS = 500  # peers retry lost links every 0.5 s (library default backs off to 4 s)
 
 

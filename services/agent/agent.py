@@ -15,45 +15,28 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import zenoh
 
-from gmm_core import fit_scan
+from gmm_core import FitConfig, fit_scan
 from protocol import (Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode,
                       poses_key, scan_key)
+from services.config import summary
 from services.zenoh_config import zenoh_config
 
+from .config import AgentConfig
 from .outbox import Outbox
-from .sources import Node, SimulatedNodes, default_update_every, fit_config, load_nodes
+from .sources import Node, SimulatedNodes, default_update_every, load_nodes
 
 log = logging.getLogger("gmmap.agent")
 
 
-@dataclass
-class AgentOptions:
-    robot: str
-    source: str
-    fleet: str = "default"
-    zenoh_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
-    zenoh_config: str | None = None
-    corrections: str | None = None
-    scans: str | None = None  # "A:B" slice of the (matched) scans
-    rate: float = 0.0  # scans per second; 0: as fast as they are fitted
-    outbox: str | None = None  # default ./gmmap-data/outbox-<robot>.db
-    encoding: str = "q"
-    update_every: int | None = None  # scans between pose-graph updates; None: the source's default
-    odometry_only: bool = False  # corrections select the scans, but no pose-graph updates are sent
-    max_range: float = 10.0
-    component_size: float | None = None  # m; None: none in 2D, 1.0 in 3D
-    resend_s: float = 1.0
-    timeout: float = 120.0  # seconds to wait for the last Acks once everything is published
-
-
 class Agent:
-    def __init__(self, options: AgentOptions, outbox: Outbox, config: zenoh.Config):
+    def __init__(self, options: AgentConfig, outbox: Outbox, config: zenoh.Config, fit: FitConfig = FitConfig()):
         self.options = options
+        self.fit = fit
         self.outbox = outbox
         self.session: zenoh.Session | None = None  # set once connected
         self._ack_subscriber = None
@@ -161,7 +144,7 @@ class Agent:
     def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
         """Fit and send every node, with pose-graph updates; returns the updates sent."""
         o = self.options
-        config = None
+        config = None  # the fit as it applies to this source's dimension, from its first scan
         corrected = []
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender.
@@ -183,7 +166,7 @@ class Agent:
             if o.rate > 0:
                 time.sleep(max(0.0, started + sent / o.rate - time.monotonic()))
             sent += 1
-            config = config or fit_config(node.scan.pose.dim, o.max_range, o.component_size)
+            config = config or self.fit.for_dimension(node.scan.pose.dim)
             model = fit_scan(node.scan.hits, node.scan.no_return, config)
             message = ScanMessage(o.fleet, o.robot, node.node, node.scan.stamp, model, node.estimate)
             self.send("scan", node.node, scan_key(o.fleet, o.robot, node.node), encode(message, o.encoding))
@@ -228,15 +211,18 @@ class Agent:
         self.session.close()
 
 
-def run_agent(o: AgentOptions) -> int:
+def run_agent(o: AgentConfig, fit: FitConfig = FitConfig()) -> int:
+    """Run one agent until its source is published and acknowledged; the process exit code."""
+    o.check_runnable()
     started = time.perf_counter()
+    print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit)}", file=sys.stderr, flush=True)
     if o.update_every is None:
         o = replace(o, update_every=default_update_every(o.source, o.rate))
     nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every)
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
     outbox = Outbox(o.outbox or Path("gmmap-data") / f"outbox-{o.robot}.db", o.fleet, o.robot)
-    agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config))
+    agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config), fit)
     try:
         from tqdm import tqdm
 

@@ -17,7 +17,7 @@ import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from gmm_core import FitConfig, Pose
+from gmm_core import Pose
 from services.datasets import RangeScan, match_by_timestamp, read_scans
 from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval, shared_fleet
 
@@ -53,13 +53,6 @@ def parse_slice(text: str | None) -> slice:
         return slice(int(start) if start else None, int(stop) if stop else None)
     except ValueError:
         raise ValueError(f"--scans must be A:B with integers, got {text!r}") from None
-
-
-def fit_config(dim: int, max_range: float, component_size: float | None = None) -> FitConfig:
-    # Dense 3D scans: by default at most one component per cubic metre cell of surface (as `gmmap replay`).
-    if component_size is None and dim == 3:
-        component_size = 1.0
-    return FitConfig(max_range=max_range, component_size=component_size)
 
 
 def is_simulated(source: str) -> bool:

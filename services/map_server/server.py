@@ -12,16 +12,18 @@ import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import zenoh
 
 from gmm_core import Grid
 from protocol import (MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard,
                       scan_wildcard)
+from gmm_core.reconstruct import ReconstructionConfig
 from services.api import params  # one set of limits for both APIs
+from services.config import summary
 from services.zenoh_config import zenoh_config
 
+from .config import ServerConfig
 from .fleet_map import FleetMap
 from .ingest import Ingest
 from .state import ServerState
@@ -30,19 +32,6 @@ from .store import Store
 log = logging.getLogger("gmmap.server")
 
 MAX_REQUEST_HEAD = 1 << 20  # bytes
-
-
-@dataclass
-class ServerOptions:
-    fleet: str = "default"
-    zenoh_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
-    zenoh_connect: tuple[str, ...] = ()
-    zenoh_config: str | None = None
-    http: str | None = "127.0.0.1:8000"  # host:port, or None for no HTTP
-    data_dir: str = "./gmmap-data"
-    synchronous: str = "NORMAL"
-    robot_quota_mb: float = 512.0  # stored scan bytes per robot, MiB; 0: no quota
-    trace_threads: int | None = None  # FleetMap's tracer threads; None: one per core
 
 
 def query_grid(query: MapQuery) -> Grid:
@@ -139,14 +128,17 @@ def start_http(state: ServerState, address: str):
     return server, thread
 
 
-def run_server(options: ServerOptions) -> int:
+def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig()) -> int:
     started = time.perf_counter()
+    print(f"gmmap server config: {summary(server=options, reconstruction=reconstruction)}", file=sys.stderr, flush=True)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
 
     store = Store(options.data_dir, synchronous=options.synchronous)
-    state = ServerState(options.fleet, FleetMap(options.fleet, trace_threads=options.trace_threads), store)
+    fleet_map = FleetMap(options.fleet, samples_per_cell=reconstruction.samples_per_cell, prior=reconstruction.prior,
+                         trace_threads=options.trace_threads)
+    state = ServerState(options.fleet, fleet_map, store)
     zenoh_side: ZenohSide | None = None
     quota = int(options.robot_quota_mb * 2**20) if options.robot_quota_mb > 0 else None
     ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload), quota)
@@ -154,7 +146,7 @@ def run_server(options: ServerOptions) -> int:
     ingest.start()
     http = None
     try:
-        config = zenoh_config("peer", listen=options.zenoh_listen, connect=options.zenoh_connect,
+        config = zenoh_config("peer", listen=options.listen, connect=options.zenoh_connect,
                               config_file=options.zenoh_config)
         try:
             zenoh_side = ZenohSide(state, ingest, config)
@@ -163,7 +155,7 @@ def run_server(options: ServerOptions) -> int:
         if options.http:
             http = start_http(state, options.http)
         print(f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
-              f"zenoh {','.join(options.zenoh_listen) or '-'}"
+              f"zenoh {','.join(options.listen) or '-'}"
               f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
               f"http {'http://' + options.http if http else 'off'}, {time.perf_counter() - started:.1f} s",
               file=sys.stderr, flush=True)

@@ -12,7 +12,9 @@ import sys
 import threading
 from pathlib import Path
 
-from services.agent.agent import AgentOptions, run_agent
+from gmm_core import FitConfig
+from services.agent.agent import run_agent
+from services.agent.config import AgentConfig
 from services.sim.fleet import SimSource, robot_name
 
 
@@ -34,10 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     def robot(index: int, port: int) -> None:
         name = robot_name(index)
         try:
-            codes[name] = run_agent(AgentOptions(
+            codes[name] = run_agent(AgentConfig(
                 robot=name, source=str(SimSource(args.world, index, args.robots, args.seed)), fleet=args.fleet,
                 zenoh_connect=(f"tcp/127.0.0.1:{port}",), zenoh_config=args.zenoh_config, scans=f"0:{args.scans}",
-                rate=args.rate, outbox=str(args.workdir / f"outbox-{name}.db"), component_size=args.component_size))
+                rate=args.rate, outbox=str(args.workdir / f"outbox-{name}.db")), FitConfig(component_size=args.component_size))
         except Exception as error:  # noqa: BLE001 - one robot's failure is reported, the others go on
             print(f"robot {name}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)
             codes[name] = 2

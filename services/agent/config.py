@@ -1,0 +1,46 @@
+"""The `agent` section of the configuration: one robot's agent (its fit is the `fit` section)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gmm_core.validation import require_count, require_number
+from protocol import ENCODINGS, check_id
+from services.zenoh_config import DEFAULT_ENDPOINT
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    robot: str | None = None  # required to run: the robot's id, in its keys gmmap/<fleet>/<robot>/...
+    source: str | None = None  # required to run: carmen:PATH | kurt3d:DIR | xyz:PATH | sim:WORLD:INDEX:ROBOTS[:SEED]
+    fleet: str = "default"
+    zenoh_connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)  # the router or server the agent (a client) reaches
+    zenoh_config: str | None = None  # a Zenoh JSON5 file
+    corrections: str | None = None  # corrected CARMEN log: odometry poses first, these as pose-graph updates
+    scans: str | None = None  # "A:B" slice of the (matched) scans; node ids stay global
+    rate: float = 0.0  # scans per second; 0: as fast as they are fitted
+    outbox: str | None = None  # durable outbox; None: ./gmmap-data/outbox-<robot>.db
+    encoding: str = "q"  # wire encoding of scans, one of protocol.ENCODINGS
+    update_every: int | None = None  # scans between pose-graph updates (0: at the end); None: the source's
+    odometry_only: bool = False  # with corrections: the matched scans, but no pose-graph updates
+    resend_s: float = 1.0  # s, least time before resending what is unacknowledged (grows with the Ack RTT)
+    timeout: float = 120.0  # s to wait for the last Acks once everything is published
+
+    def __post_init__(self):
+        if self.robot is not None:
+            check_id(self.robot, "agent.robot")
+        check_id(self.fleet, "agent.fleet")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"agent.encoding: must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
+        require_number("agent.rate", self.rate, positive=False)
+        require_number("agent.resend_s", self.resend_s, positive=True)
+        require_number("agent.timeout", self.timeout, positive=False)
+        if self.update_every is not None:
+            require_count("agent.update_every", self.update_every, minimum=0)
+        if not self.zenoh_connect:
+            raise ValueError("agent.zenoh_connect: an agent needs an endpoint to connect to")
+
+    def check_runnable(self) -> None:
+        """A ValueError naming what an agent cannot run without."""
+        for name in ("robot", "source"):
+            if getattr(self, name) is None:
+                raise ValueError(f"agent.{name}: required (--{name}, or `{name}` in the [agent] section of --config)")

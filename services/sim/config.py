@@ -1,0 +1,33 @@
+"""The `sim` section of the configuration: one simulated fleet (`gmmap sim`); the robots' fit is
+the `fit` section and the server's reconstruction the `reconstruction` section."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from gmm_core.validation import require_count, require_number
+from protocol import check_id
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    robots: int = 3  # robots in the fleet, >= 1
+    world: str = "office"  # office, warehouse: 2D laser; mine: 3D lidar (services.sim.worlds)
+    duration: float = 60.0  # s each robot drives and publishes (simulated = wall seconds at `rate`)
+    rate: float = 5.0  # scans per second per robot, > 0
+    seed: int = 0  # world, paths, odometry and sensor noise
+    http_clients: int = 0  # concurrent HTTP clients fetching map tiles meanwhile
+    report: str | None = None  # a folder for report.json, report.md and the plots; None: none
+    fleet: str = "default"
+
+    def __post_init__(self):
+        require_count("sim.robots", self.robots)
+        require_number("sim.duration", self.duration, positive=True)
+        require_number("sim.rate", self.rate, positive=True)
+        require_count("sim.seed", self.seed, minimum=0)
+        require_count("sim.http_clients", self.http_clients, minimum=0)
+        check_id(self.fleet, "sim.fleet")
+
+    @property
+    def scans(self) -> int:
+        return max(1, math.ceil(self.duration * self.rate))
