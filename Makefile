@@ -1,26 +1,40 @@
-# `make test` and `make demo` each install what they need into .venv first.
+# `make test`, `make check` and `make demo` each install what they need into .venv first.
 PYTHON ?= python3
 VENV := .venv
-STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench clean
+.PHONY: test unit check demo bench clean
 
-$(STAMP): pyproject.toml
+$(VENV)/.core: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --upgrade pip
-	$(VENV)/bin/pip install --quiet -e '.[dev]'
-	touch $(STAMP)
+	$(VENV)/bin/pip install --quiet -e .
+	touch $@
 
-test: $(STAMP)
+$(VENV)/.dev: $(VENV)/.core
+	$(VENV)/bin/pip install --quiet -e '.[dev]'
+	touch $@
+
+$(VENV)/.bench: $(VENV)/.core
+	$(VENV)/bin/pip install --quiet -e '.[bench]'
+	touch $@
+
+test: $(VENV)/.dev
 	@command -v chromium >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || echo "could not install chromium: the viewer screenshot test will be skipped"
 	@command -v docker-compose >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq docker-compose >/dev/null) || echo "could not install docker-compose: the compose file validation test will be skipped"
 	$(VENV)/bin/pytest -q
 
-demo: $(STAMP)
+unit: $(VENV)/.dev
+	$(VENV)/bin/pytest -q -m "not integration"
+
+check: $(VENV)/.dev
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy gmm_core protocol
+
+demo: $(VENV)/.core
 	$(VENV)/bin/gmmap demo
 
-bench: $(STAMP)
-	$(VENV)/bin/pip install --quiet -e '.[bench]'
+bench: $(VENV)/.bench
 	$(VENV)/bin/python bench/fit.py
 	$(VENV)/bin/python bench/raytrace.py
 	$(VENV)/bin/python bench/auroc_intel.py
