@@ -83,18 +83,15 @@ def load_config(path: str | Path | None = None,
 
 
 def read_config_file(path: Path) -> dict[str, Any]:
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".yaml", ".yml"):
+        raise ConfigError(f"--config: {path} must end in .toml, .yaml or .yml")
     try:
         text = path.read_text()
     except OSError as error:
         raise ConfigError(f"--config: cannot read {path}: {error.strerror}") from None
-    suffix = path.suffix.lower()
     try:
-        if suffix == ".toml":
-            data = _toml().loads(text)
-        elif suffix in (".yaml", ".yml"):
-            data = _yaml().safe_load(text) or {}
-        else:
-            raise ConfigError(f"--config: {path} must end in .toml, .yaml or .yml")
+        data = _toml().loads(text) if suffix == ".toml" else (_yaml().safe_load(text) or {})
     except ConfigError:
         raise
     except Exception as error:  # the parsers' own error types: TOMLDecodeError, YAMLError
