@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
+from services.sim.report import AurocPoint  # noqa: E402
+
 STYLES = {"wire": ("-", "GMM on the wire"), "raw": ("--", "raw scans"), "grid": (":", "0.1 m grid deltas"),
           "octomap": ("-.", "OctoMap .bt deltas")}
 
@@ -39,13 +41,14 @@ def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
     plt.close(fig)
 
 
-def auroc_over_time(path: Path, timeline: list[dict], corrections: list[float]) -> None:
+def auroc_over_time(path: Path, timeline: list[AurocPoint], corrections: list[float]) -> None:
     fig, ax = plt.subplots(figsize=(8, 4))
-    t = [row["t_s"] for row in timeline]
+    t = [row.t_s for row in timeline]
     for key, label in (("served", "served map (pose-graph updates applied)"),
                        ("published_estimates", "published estimates (updates withheld)"),
                        ("odometry", "odometry only (no loop closure)")):
-        ax.plot(t, [np.nan if row[key] is None else row[key] for row in timeline], "o-", ms=3, label=label)
+        values = [getattr(row, key) for row in timeline]
+        ax.plot(t, [np.nan if v is None else v for v in values], "o-", ms=3, label=label)
     for i, c in enumerate(corrections):
         ax.axvline(c, color="grey", lw=0.6, alpha=0.5, label="pose-graph update" if i == 0 else None)
     ax.set(xlabel="time since the first scan (s)", ylabel="AUROC at 0.1 m vs ground truth",
