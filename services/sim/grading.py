@@ -138,7 +138,7 @@ def grade(record: RunRecord) -> Grading:
         schedule_slip_s=max(slip, default=None),
         **memory_growth(record.server_rss),
         server_rss_over_time=memory_series(record.server_rss, record.started),
-        per_robot=robots, auroc_over_time=timeline,
+        per_robot=robots, auroc_over_time=timeline, config=dict(o.config),
     )
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
     return Grading(report, per_scan, maps, t0)

@@ -28,6 +28,7 @@ class SimOptions:
     report: str | None = None
     component_size: float | None = None  # m, passed to the agents' fit; None: their default
     fleet: str = "default"
+    config: dict = field(default_factory=dict)  # the resolved configuration, copied into the report as is
 
     @property
     def scans(self) -> int:

@@ -125,8 +125,17 @@ def markdown(r: SimReport) -> str:
               for name, robot in r.per_robot.items()]
     lines += ["", "![bytes over time](bytes_over_time.png)", "", "![AUROC over time](auroc_over_time.png)", "",
               "![final map and ground truth](map_vs_truth.png)", "", "![server memory](server_memory.png)", "",
-              "## How it is measured", "", MEASUREMENT_NOTES.strip(), ""]
+              "## How it is measured", "", MEASUREMENT_NOTES.strip(), "",
+              "## Configuration", "", *configuration(r.config), ""]
     return "\n".join(lines)
+
+
+def configuration(config: dict) -> list[str]:
+    """report.md lines of the resolved configuration (report.json's `config`)."""
+    if not config:
+        return ["None recorded (`config` in report.json is empty)."]
+    return ["The resolved configuration of the run, as `config` in report.json:", "", "```json",
+            json.dumps(config, indent=2), "```"]
 
 
 def summary(report: SimReport) -> str:

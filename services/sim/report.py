@@ -1,10 +1,10 @@
 """The figures of one `gmmap sim` run, typed. `SimReport.to_json()` is report.json: its keys, their
 order and their meaning are a contract read by scripts outside the repository, so fields are only
-ever added at the end, never renamed, reordered or dropped.
+ever added at the end (as `config` was), never renamed, reordered or dropped.
 How each figure is measured: render.MEASUREMENT_NOTES."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 
 @dataclass
@@ -91,6 +91,7 @@ class SimReport:
     server_rss_over_time: list[tuple[float, float]]  # (s since the robots started, MiB)
     per_robot: dict[str, RobotReport]
     auroc_over_time: list[AurocPoint]
+    config: dict = field(default_factory=dict)  # the resolved configuration the run was given (SimOptions.config)
 
     def to_json(self) -> dict:
         """report.json's object: nested reports as objects, keys in field order."""
