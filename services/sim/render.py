@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.sim import plots
 from services.sim.grading import Grading
 from services.sim.record import RunRecord
 from services.sim.report import SimReport
@@ -44,8 +45,6 @@ from when the robots start until they are done; growth = last sample - first.
 
 def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
     """DIR/report.json, DIR/report.md and its four PNGs."""
-    from services.sim import plots
-
     out.mkdir(parents=True, exist_ok=True)
     r = grading.report
     (out / "report.json").write_text(json.dumps(r.to_json(), indent=2) + "\n")

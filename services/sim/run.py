@@ -30,6 +30,7 @@ import numpy as np
 
 from gmm_core import Grid
 from services.host import cpu_cores
+from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
 from services.sim.processes import Processes, free_port
@@ -242,6 +243,8 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
 def run_sim(o: SimOptions) -> int:
     if o.robots < 1 or o.duration <= 0 or o.rate <= 0 or o.http_clients < 0:
         raise ValueError("--robots and --rate must be positive, --duration > 0, --http-clients >= 0")
+    if o.report:
+        plots.require_matplotlib()  # before the run, not after a minute of it
     with tempfile.TemporaryDirectory(prefix="gmmap-sim-") as tmp:
         record = run_fleet(o, Path(tmp))
         grading = grade(record)
