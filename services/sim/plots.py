@@ -1,15 +1,37 @@
 """The report's figures (matplotlib, Agg): bytes over time, AUROC over time, final map vs ground truth,
-the server's memory over time."""
+the server's memory over time.
+
+matplotlib is the optional extra `gmmap[sim]`: it is imported when a figure is drawn, so that
+`gmmap sim` without --report runs without it, and `require_matplotlib` lets --report fail before
+the run rather than after it.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
+from services.sim.report import AurocPoint
+
+MISSING_MATPLOTLIB = "--report draws its figures with matplotlib, which is not installed: install gmmap[sim]"
+
+
+def require_matplotlib() -> None:
+    """ValueError (which the CLI prints as its message) when matplotlib cannot be imported."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ValueError(MISSING_MATPLOTLIB) from None
+
+
+def _pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (no display on a headless harness)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 STYLES = {"wire": ("-", "GMM on the wire"), "raw": ("--", "raw scans"), "grid": (":", "0.1 m grid deltas"),
           "octomap": ("-.", "OctoMap .bt deltas")}
@@ -17,6 +39,9 @@ STYLES = {"wire": ("-", "GMM on the wire"), "raw": ("--", "raw scans"), "grid": 
 
 def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
     """Cumulative bytes per robot: what went on the wire (measured) against the alternatives."""
+    from matplotlib.lines import Line2D
+
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4.5))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, (robot, series) in enumerate(per_scan.items()):
@@ -39,13 +64,15 @@ def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
     plt.close(fig)
 
 
-def auroc_over_time(path: Path, timeline: list[dict], corrections: list[float]) -> None:
+def auroc_over_time(path: Path, timeline: list[AurocPoint], corrections: list[float]) -> None:
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
-    t = [row["t_s"] for row in timeline]
+    t = [row.t_s for row in timeline]
     for key, label in (("served", "served map (pose-graph updates applied)"),
                        ("published_estimates", "published estimates (updates withheld)"),
                        ("odometry", "odometry only (no loop closure)")):
-        ax.plot(t, [np.nan if row[key] is None else row[key] for row in timeline], "o-", ms=3, label=label)
+        values = [getattr(row, key) for row in timeline]
+        ax.plot(t, [np.nan if v is None else v for v in values], "o-", ms=3, label=label)
     for i, c in enumerate(corrections):
         ax.axvline(c, color="grey", lw=0.6, alpha=0.5, label="pose-graph update" if i == 0 else None)
     ax.set(xlabel="time since the first scan (s)", ylabel="AUROC at 0.1 m vs ground truth",
@@ -68,6 +95,7 @@ def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
     panels = [("odometry only (before correction)", maps["odometry"]), ("served (after correction)", maps["served"]),
               ("ground truth (observed cells)", truth)]
     extent = [grid.origin[0], grid.upper[0], grid.origin[1], grid.upper[1]]
+    plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6 * (extent[3] - extent[2]) / (extent[1] - extent[0]) + 0.8))
     for ax, (title, a) in zip(axes, panels):
         ax.imshow(plane(a), cmap="gray_r", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
@@ -79,6 +107,7 @@ def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
 
 def memory_over_time(path: Path, rss: list[tuple[float, float]]) -> None:
     """The map server's resident memory (MiB) against seconds since the robots started."""
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.5))
     if rss:
         t, mib = zip(*rss)

@@ -6,7 +6,7 @@ agent reaches the server through a CountingRelay (its link, bytes counted both w
 client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
 the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles. When
 every agent is done (all its scans acknowledged) the server stops and the record is graded
-by services.sim.report.
+(services.sim.grading) and, with --report, written out (services.sim.render).
 """
 from __future__ import annotations
 
@@ -24,94 +24,24 @@ import time
 import urllib.error
 import urllib.request
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from gmm_core import Grid
-from services.api.params import MAX_CELLS
-from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.host import cpu_cores
+from services.sim import plots
+from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
+from services.sim.grading import grade
 from services.sim.processes import Processes, free_port
+from services.sim.record import RunRecord, SimOptions, Snapshot, evaluation_grid, slabs
 from services.sim.relay import CountingRelay
-from services.sim.tap import WireEvent, WireTap
+from services.sim.render import summary, write_report
+from services.sim.tap import WireTap
 
-RESOLUTION = 0.1  # m, of the maps graded against ground truth
-MARGIN_3D = (8.0, 8.0, 3.0)  # m around the paths: the graded box of a 3D world
 TILE = 256  # cells per tile side, as the viewer asks
 SNAPSHOT_CELLS = 500_000  # per request: the server's map lock is free for ingest between requests
 ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
-
-
-@dataclass
-class SimOptions:
-    robots: int = 3
-    world: str = "office"
-    duration: float = 60.0  # simulated seconds per robot (= wall seconds: agents publish at `rate`)
-    rate: float = 5.0
-    seed: int = 0
-    http_clients: int = 0
-    report: str | None = None
-    component_size: float | None = None  # m, passed to the agents' fit; None: their default
-    fleet: str = "default"
-
-    @property
-    def scans(self) -> int:
-        return max(1, math.ceil(self.duration * self.rate))
-
-
-@dataclass
-class Snapshot:
-    t: float  # epoch seconds when it was asked for
-    stored: dict[str, int]  # scans acknowledged per robot by then
-    path: Path  # the npy file
-
-
-@dataclass
-class RunRecord:
-    """Everything observed during one run; services.sim.report turns it into numbers and plots."""
-
-    options: SimOptions
-    fleet: SimulatedFleet
-    grid: Grid
-    update_every: int
-    started: float  # epoch seconds when the agents were started
-    wall_s: float = 0.0
-    events: list[WireEvent] = field(default_factory=list)
-    link_bytes: dict[str, tuple[int, int]] = field(default_factory=dict)  # robot -> (up, down)
-    snapshots: list[Snapshot] = field(default_factory=list)
-    tile_latencies: list[float] = field(default_factory=list)
-    tile_errors: dict[str, int] = field(default_factory=dict)  # failed requests by kind
-    published: dict[str, int] = field(default_factory=dict)  # scans each agent fitted and sent
-    stored: dict[tuple[str, int], bytes] = field(default_factory=dict)  # the server's store
-    components: dict[str, int] = field(default_factory=dict)
-    agent_exit: dict[str, int] = field(default_factory=dict)
-    cpu_s: dict[str, float] = field(default_factory=dict)
-    server_rss: list[tuple[float, int]] = field(default_factory=list)  # (epoch s, resident bytes) while it ran
-
-
-def evaluation_grid(fleet: SimulatedFleet) -> Grid:
-    """The graded box at RESOLUTION: a whole 2D world, or the paths of a 3D one plus MARGIN_3D."""
-    raster = fleet.world.raster
-    if fleet.world.dim == 2:
-        return Grid.from_bbox(raster.origin, raster.upper, RESOLUTION)
-    positions = np.concatenate([path[:, :3] for path in fleet.paths])
-    lo = np.maximum(np.floor(positions.min(axis=0) - MARGIN_3D), raster.origin)
-    hi = np.minimum(np.ceil(positions.max(axis=0) + MARGIN_3D), raster.upper)
-    return Grid.from_bbox(lo, hi, RESOLUTION)
-
-
-def slabs(grid: Grid, max_cells: int = MAX_CELLS) -> list[Grid]:
-    """The grid cut along its first array axis (y in 2D, z in 3D) into pieces of at most `max_cells`."""
-    per_slab = max(1, max_cells // (grid.n_cells // grid.array_shape[0]))
-    pieces = []
-    for first in range(0, grid.array_shape[0], per_slab):
-        origin, shape = grid.origin.copy(), list(grid.shape)
-        origin[-1] += first * grid.resolution
-        shape[-1] = min(per_slab, grid.array_shape[0] - first)
-        pieces.append(Grid(origin, grid.resolution, tuple(shape)))
-    return pieces
 
 
 def fetch_occupancy(base: str, grid: Grid) -> np.ndarray:
@@ -311,10 +241,10 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
 
 
 def run_sim(o: SimOptions) -> int:
-    from services.sim.report import grade, write_report
-
     if o.robots < 1 or o.duration <= 0 or o.rate <= 0 or o.http_clients < 0:
         raise ValueError("--robots and --rate must be positive, --duration > 0, --http-clients >= 0")
+    if o.report:
+        plots.require_matplotlib()  # before the run, not after a minute of it
     with tempfile.TemporaryDirectory(prefix="gmmap-sim-") as tmp:
         record = run_fleet(o, Path(tmp))
         grading = grade(record)
@@ -322,12 +252,4 @@ def run_sim(o: SimOptions) -> int:
             write_report(grading, record, Path(o.report))
     report = grading.report
     print(summary(report))
-    return 0 if report["scans_stored"] == report["scans_published"] else 1
-
-
-def summary(report: dict) -> str:
-    keys = ["robots", "duration_s", "scans_published", "scans_stored", "bytes_on_wire", "raw_scan_bytes",
-            "grid_delta_bytes", "octomap_delta_bytes", "components", "auroc", "auroc_before_correction",
-            "ingest_lag_p99_s", "tile_latency_p99_s", "realtime_factor", "server_rss_growth_mb"]
-    return "\n".join(f"{k:>24}: {report[k]:.4g}" if isinstance(report[k], float) else f"{k:>24}: {report[k]}"
-                     for k in keys)
+    return 0 if report.scans_stored == report.scans_published else 1

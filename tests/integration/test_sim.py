@@ -17,11 +17,11 @@ from gmm_core import Grid
 from gmm_core.reconstruct import count_beams
 from services.agent.sources import default_update_every, load_nodes
 from services.cli import SIM_WORLDS
+from services.sim.byte_models import GRID_DELTA_CELL_BYTES, grid_state, scan_window
 from services.sim.fleet import SimSource, SimulatedFleet
 from services.sim.processes import free_port
+from services.sim.record import slabs
 from services.sim.relay import CountingRelay
-from services.sim.report import GRID_DELTA_CELL_BYTES, grid_state, scan_window
-from services.sim.run import slabs
 from services.sim.worlds import WORLDS
 from support.paths import ROOT
 

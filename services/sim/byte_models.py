@@ -1,0 +1,81 @@
+"""What the alternatives to the GMM messages would have sent for the same scans: raw scans,
+occupancy-grid deltas and OctoMap deltas, per scan (render.MEASUREMENT_NOTES, "Bytes", says why
+these and how each is counted). Replaying the beams also gives the cells each map snapshot had
+observed, on which the maps are graded."""
+from __future__ import annotations
+
+import importlib.util
+import itertools
+
+import numpy as np
+
+from gmm_core import FitConfig, Grid
+from gmm_core.reconstruct import count_beams
+from services.datasets.common import RangeScan
+from services.sim.fleet import robot_name
+from services.sim.record import RunRecord
+
+GRID_DELTA_CELL_BYTES = 5  # 4 B cell index + 1 B state
+
+
+def grid_state(hits: np.ndarray, misses: np.ndarray) -> np.ndarray:
+    """0 unknown, 1 free, 2 occupied, as a counting grid decides."""
+    return np.where(hits + misses == 0, 0, np.where(hits > misses, 2, 1)).astype(np.int8)
+
+
+def scan_window(grid: Grid, scan: RangeScan, max_range: float):
+    """(array slices, sub-grid) of `grid` around the scan's rays, or None when it misses the grid."""
+    ends = scan.pose.apply(np.concatenate([scan.hits, scan.no_return * max_range]))
+    points = np.vstack([ends, scan.pose.t[None]])
+    first = np.clip(np.floor((points.min(axis=0) - grid.origin) / grid.resolution).astype(int), 0, grid.shape)
+    last = np.clip(np.floor((points.max(axis=0) - grid.origin) / grid.resolution).astype(int) + 1, 0, grid.shape)
+    if np.any(last <= first):
+        return None
+    window = tuple(slice(a, b) for a, b in zip(first[::-1], last[::-1]))
+    return window, Grid(grid.origin + first * grid.resolution, grid.resolution, tuple(last - first))
+
+
+def octomap_delta_bytes(scan: RangeScan, resolution: float) -> int:
+    """Size of the `.bt` of a fresh OcTree holding this one scan's returns (2D: one layer)."""
+    import octomap
+
+    tree = octomap.OcTree(resolution)
+    origin, points = scan.pose.t, scan.pose.apply(scan.hits)
+    if len(origin) == 2:  # the mid-plane of the voxel layer above z = 0
+        z = resolution / 2
+        origin, points = np.append(origin, z), np.column_stack([points, np.full(len(points), z)])
+    tree.insertPointCloud(np.ascontiguousarray(points), np.ascontiguousarray(origin))
+    return len(tree.writeBinary())
+
+
+def replay_beams(record: RunRecord, stored_at: list[dict[str, int]], progress) -> tuple[dict, list[np.ndarray]]:
+    """Per robot and scan: raw, grid-delta and OctoMap bytes; and the cells observed by each snapshot."""
+    with_octomap = importlib.util.find_spec("octomap") is not None  # the [bench] extra
+    grid, dim, max_range = record.grid, record.grid.dim, FitConfig().max_range
+    observed = [np.zeros(grid.array_shape, bool) for _ in stored_at]
+    per_scan = {}
+    for index in range(record.fleet.robots):
+        name = robot_name(index)
+        n = record.published.get(name, 0)
+        hits, misses = np.zeros(grid.array_shape, np.float32), np.zeros(grid.array_shape, np.float32)
+        sizes = {key: np.zeros(n, np.int64) for key in ("raw", "grid", "octomap")}
+        for k, scan in enumerate(itertools.islice(record.fleet.scans(index, record.update_every), n)):
+            beams = len(scan.hits) + len(scan.no_return)
+            sizes["raw"][k] = 4 * beams * (1 if dim == 2 else 3)
+            found = scan_window(grid, scan, max_range)
+            if found is not None:
+                window, sub = found
+                h, m = count_beams(sub, [(scan.hits, scan.no_return, scan.pose)], max_range)
+                before = grid_state(hits[window], misses[window])
+                hits[window] += h
+                misses[window] += m
+                changed = grid_state(hits[window], misses[window]) != before
+                sizes["grid"][k] = GRID_DELTA_CELL_BYTES * np.count_nonzero(changed)
+            if with_octomap:
+                sizes["octomap"][k] = octomap_delta_bytes(scan, grid.resolution)
+            for j, stored in enumerate(stored_at):
+                if stored.get(name, 0) == k + 1:
+                    observed[j] |= (hits + misses) > 0
+            progress(1)
+        per_scan[name] = sizes if with_octomap else {k: v for k, v in sizes.items() if k != "octomap"}
+    return per_scan, observed
