@@ -8,9 +8,9 @@ import time
 import numpy as np
 
 from services.config import GmmapConfig, load_config
+from services.sim.world_names import WORLD_NAMES
 from services.zenoh_config import DEFAULT_ENDPOINT
 
-SIM_WORLDS = ["mine", "office", "warehouse"]  # services.sim.worlds.WORLDS, without importing numba here
 DEFAULTS = GmmapConfig()
 
 
@@ -168,11 +168,9 @@ def cmd_agent(args) -> int:
 
 
 def cmd_sim(args) -> int:
-    from services.sim.run import SimOptions, run_sim
+    from services.sim.run import run_sim
 
-    return run_sim(SimOptions(robots=args.robots, world=args.world, duration=args.duration, rate=args.rate,
-                              seed=args.seed, http_clients=args.http_clients, report=args.report,
-                              component_size=args.component_size))
+    return run_sim(_resolved(args))
 
 
 def cmd_demo(args) -> int:
@@ -289,18 +287,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_agent)
 
     p = sub.add_parser("sim", help="a simulated fleet over real Zenoh: bytes, map AUROC vs ground truth, latencies")
-    p.add_argument("--robots", type=int, default=3, help="one agent process each")
-    p.add_argument("--world", choices=SIM_WORLDS, default="office",
-                   help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
-    p.add_argument("--duration", type=float, default=60.0, help="seconds each robot drives and publishes")
-    p.add_argument("--rate", type=float, default=5.0, help="scans per second per robot")
-    p.add_argument("--seed", type=int, default=0, help="world, paths, odometry and sensor noise")
-    p.add_argument("--http-clients", type=int, default=0, metavar="N",
-                   help="concurrent HTTP clients fetching map tiles meanwhile")
-    p.add_argument("--report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
-    p.add_argument("--component-size", type=float, default=None, metavar="M",
-                   help="the agents' fit: at most one component per occupied cell of this size "
-                        "(default: none in 2D, 1.0 m in 3D)")
+    _setting(p, "--robots", "sim.robots", type=int, help="robots in the fleet, each a full agent")
+    _setting(p, "--world", "sim.world", choices=WORLD_NAMES, help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
+    _setting(p, "--duration", "sim.duration", type=float, help="seconds each robot drives and publishes")
+    _setting(p, "--rate", "sim.rate", type=float, help="scans per second per robot")
+    _setting(p, "--seed", "sim.seed", type=int, help="world, paths, odometry and sensor noise")
+    _setting(p, "--http-clients", "sim.http_clients", type=int, metavar="N",
+             help="concurrent HTTP clients fetching map tiles meanwhile")
+    _setting(p, "--report", "sim.report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
+    _fit_flags(p)  # the robots' fit
+    _reconstruction_flags(p)  # the server's
+    _config_flag(p)
     p.set_defaults(run=cmd_sim)
 
     p = sub.add_parser("demo", help="a map server and three simulated robots in the office; the viewer shows the map grow")

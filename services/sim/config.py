@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from gmm_core.validation import require_count, require_number
 from protocol import check_id
+from services.sim.world_names import WORLD_NAMES
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,8 @@ class SimConfig:
         require_count("sim.seed", self.seed, minimum=0)
         require_count("sim.http_clients", self.http_clients, minimum=0)
         check_id(self.fleet, "sim.fleet")
+        if self.world not in WORLD_NAMES:
+            raise ValueError(f"sim.world: must be one of {', '.join(WORLD_NAMES)}, got {self.world!r}")
 
     @property
     def scans(self) -> int:

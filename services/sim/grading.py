@@ -115,7 +115,7 @@ def grade(record: RunRecord) -> Grading:
     final = timeline[-1]
     report = SimReport(
         world=o.world, dimension=grid.dim, robots=o.robots, duration_s=o.duration, rate_hz=o.rate,
-        seed=o.seed, http_clients=o.http_clients, component_size=o.component_size,
+        seed=o.seed, http_clients=o.http_clients, component_size=record.config.fit.component_size,
         wall_s=round(record.wall_s, 2),
         scans_published=total("scans_published"), scans_stored=total("scans_stored"),
         scans_resent=total("scans_resent"),
@@ -138,7 +138,7 @@ def grade(record: RunRecord) -> Grading:
         schedule_slip_s=max(slip, default=None),
         **memory_growth(record.server_rss),
         server_rss_over_time=memory_series(record.server_rss, record.started),
-        per_robot=robots, auroc_over_time=timeline, config=dict(o.config),
+        per_robot=robots, auroc_over_time=timeline, config=record.config.to_dict(),
     )
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
     return Grading(report, per_scan, maps, t0)

@@ -17,7 +17,9 @@ from services.sim.trajectory import path_pose
 def offline_maps(record: RunRecord, stored_at: list[dict[str, int]], progress) -> dict[str, list[np.ndarray]]:
     """The published-estimate and odometry maps of the scans stored by each snapshot (server code)."""
     messages = {key: decode(raw, expect=ScanMessage) for key, raw in record.stored.items()}
-    maps = {"published_estimates": FleetMap(record.options.fleet), "odometry": FleetMap(record.options.fleet)}
+    r = record.config.reconstruction  # as the server reconstructs
+    maps = {name: FleetMap(record.options.fleet, samples_per_cell=r.samples_per_cell, prior=r.prior)
+            for name in ("published_estimates", "odometry")}
     robots = {robot_name(i): i for i in range(record.fleet.robots)}
     added: dict[str, int] = defaultdict(int)
     out: dict[str, list[np.ndarray]] = {name: [] for name in maps}

@@ -1,8 +1,7 @@
-"""What one `gmmap sim` run is asked to do and what it observed: the options, the map snapshots, the
-RunRecord, and the graded box. services.sim.run fills a RunRecord; services.sim.grading reads it."""
+"""What one `gmmap sim` run observed (the RunRecord, with the configuration it ran), its map
+snapshots, and the graded box. services.sim.run fills a RunRecord; services.sim.grading reads it."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -10,29 +9,13 @@ import numpy as np
 
 from gmm_core import Grid
 from services.api.params import MAX_CELLS
+from services.config import GmmapConfig
+from services.sim.config import SimConfig
 from services.sim.fleet import SimulatedFleet
 from services.sim.tap import WireEvent
 
 RESOLUTION = 0.1  # m, of the maps graded against ground truth
 MARGIN_3D = (8.0, 8.0, 3.0)  # m around the paths: the graded box of a 3D world
-
-
-@dataclass
-class SimOptions:
-    robots: int = 3
-    world: str = "office"
-    duration: float = 60.0  # simulated seconds per robot (= wall seconds: agents publish at `rate`)
-    rate: float = 5.0
-    seed: int = 0
-    http_clients: int = 0
-    report: str | None = None
-    component_size: float | None = None  # m, passed to the agents' fit; None: their default
-    fleet: str = "default"
-    config: dict = field(default_factory=dict)  # the resolved configuration, copied into the report as is
-
-    @property
-    def scans(self) -> int:
-        return max(1, math.ceil(self.duration * self.rate))
 
 
 @dataclass
@@ -47,7 +30,7 @@ class RunRecord:
     """Everything observed during one run; services.sim.grading turns it into numbers, services.sim.render
     into report.md and plots."""
 
-    options: SimOptions
+    config: GmmapConfig  # what the run was asked to do: its `sim` section, the robots' fit, the server's
     fleet: SimulatedFleet
     grid: Grid
     update_every: int
@@ -64,6 +47,10 @@ class RunRecord:
     agent_exit: dict[str, int] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)
     server_rss: list[tuple[float, int]] = field(default_factory=list)  # (epoch s, resident bytes) while it ran
+
+    @property
+    def options(self) -> SimConfig:
+        return self.config.sim
 
 
 def evaluation_grid(fleet: SimulatedFleet) -> Grid:

@@ -91,7 +91,7 @@ class SimReport:
     server_rss_over_time: list[tuple[float, float]]  # (s since the robots started, MiB)
     per_robot: dict[str, RobotReport]
     auroc_over_time: list[AurocPoint]
-    config: dict = field(default_factory=dict)  # the resolved configuration the run was given (SimOptions.config)
+    config: dict = field(default_factory=dict)  # the resolved configuration the run was given (GmmapConfig.to_dict())
 
     def to_json(self) -> dict:
         """report.json's object: nested reports as objects, keys in field order."""

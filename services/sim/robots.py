@@ -12,9 +12,9 @@ import sys
 import threading
 from pathlib import Path
 
-from gmm_core import FitConfig
 from services.agent.agent import run_agent
 from services.agent.config import AgentConfig
+from services.config import load_config
 from services.sim.fleet import SimSource, robot_name
 
 
@@ -29,8 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--workdir", type=Path, default=Path("."), help="where each robot's outbox goes")
     p.add_argument("--zenoh-config")
-    p.add_argument("--component-size", type=float)
+    p.add_argument("--config", help="a gmmap configuration file: its [fit] section is the robots' fit")
     args = p.parse_args(argv)
+    fit = load_config(args.config).fit
     codes: dict[str, int] = {}
 
     def robot(index: int, port: int) -> None:
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
             codes[name] = run_agent(AgentConfig(
                 robot=name, source=str(SimSource(args.world, index, args.robots, args.seed)), fleet=args.fleet,
                 zenoh_connect=(f"tcp/127.0.0.1:{port}",), zenoh_config=args.zenoh_config, scans=f"0:{args.scans}",
-                rate=args.rate, outbox=str(args.workdir / f"outbox-{name}.db")), FitConfig(component_size=args.component_size))
+                rate=args.rate, outbox=str(args.workdir / f"outbox-{name}.db")), fit)
         except Exception as error:  # noqa: BLE001 - one robot's failure is reported, the others go on
             print(f"robot {name}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)
             codes[name] = 2

@@ -34,7 +34,8 @@ from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
 from services.sim.processes import Processes, free_port
-from services.sim.record import RunRecord, SimOptions, Snapshot, evaluation_grid, slabs
+from services.config import GmmapConfig
+from services.sim.record import RunRecord, Snapshot, evaluation_grid, slabs
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
 from services.sim.tap import WireTap
@@ -148,9 +149,13 @@ def stored_scans(data_dir: Path, fleet: str) -> dict[tuple[str, int], bytes]:
         db.close()
 
 
-def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
+def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
     """Run the fleet once; server, agents, relays and the tap are gone when this returns."""
     from tqdm import tqdm
+
+    o = config.sim
+    settings = workdir / "gmmap.toml"  # the robots' fit and the server's reconstruction, as resolved here
+    settings.write_text(config.to_toml())
 
     fleet = SimulatedFleet(o.world, o.robots, o.scans, o.rate, o.seed)
     grid = evaluation_grid(fleet)
@@ -165,19 +170,18 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         base = f"http://127.0.0.1:{hport}"
         procs.server(zport, f"127.0.0.1:{hport}", workdir / "data", o.fleet)
         tap = WireTap(o.fleet, zport)
-        record = RunRecord(o, fleet, grid, correction_interval(o.rate), time.time())
+        record = RunRecord(config, fleet, grid, correction_interval(o.rate), time.time())
         # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
         # around the link; a robot's radio link has no such shortcut.
         no_shm = workdir / "agent-zenoh.json5"
         no_shm.write_text('{transport: {shared_memory: {enabled: false}}}')
         for name in names:
             relays[name] = CountingRelay(zport)
-        fit = ("--component-size", f"{o.component_size:g}") if o.component_size else ()
         groups = robot_groups(o.robots)
         for g, members in enumerate(groups):
             procs.robots(f"robots-{g}", [(i, relays[names[i]].port) for i in members],
                          SimSource(o.world, 0, o.robots, o.seed), o.rate, o.scans, o.fleet,
-                         "--zenoh-config", str(no_shm), *fit)
+                         "--zenoh-config", str(no_shm), "--config", str(settings))
         group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
         if o.http_clients:
             clients = TileClients(tile_urls(base, grid), o.http_clients)
@@ -240,13 +244,13 @@ def run_fleet(o: SimOptions, workdir: Path) -> RunRecord:
         procs.close()
 
 
-def run_sim(o: SimOptions) -> int:
-    if o.robots < 1 or o.duration <= 0 or o.rate <= 0 or o.http_clients < 0:
-        raise ValueError("--robots and --rate must be positive, --duration > 0, --http-clients >= 0")
+def run_sim(config: GmmapConfig) -> int:
+    """One simulated fleet run as `config.sim` says (its values are validated by SimConfig)."""
+    o = config.sim
     if o.report:
         plots.require_matplotlib()  # before the run, not after a minute of it
     with tempfile.TemporaryDirectory(prefix="gmmap-sim-") as tmp:
-        record = run_fleet(o, Path(tmp))
+        record = run_fleet(config, Path(tmp))
         grading = grade(record)
         if o.report:
             write_report(grading, record, Path(o.report))

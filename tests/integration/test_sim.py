@@ -16,7 +16,6 @@ import pytest
 from gmm_core import Grid
 from gmm_core.reconstruct import count_beams
 from services.agent.sources import default_update_every, load_nodes
-from services.cli import SIM_WORLDS
 from services.sim.byte_models import GRID_DELTA_CELL_BYTES, grid_state, scan_window
 from services.sim.fleet import SimSource, SimulatedFleet
 from services.sim.processes import free_port
@@ -42,7 +41,6 @@ def test_sim_source_parses_and_names_what_is_wrong():
             SimSource.parse(bad)
     with pytest.raises(ValueError, match="--scans"):
         load_nodes("sim:office:0:2")
-    assert SIM_WORLDS == sorted(WORLDS)
 
 
 def test_sim_nodes_publish_the_robots_estimate_and_correct_to_the_truth():

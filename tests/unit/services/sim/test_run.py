@@ -7,7 +7,7 @@ from support.paths import ROOT
 
 import services.sim.run
 from services.cli import main
-from services.sim.record import SimOptions
+from services.config import load_config
 
 
 @pytest.fixture
@@ -22,7 +22,7 @@ def no_matplotlib(monkeypatch):
 
 def test_report_without_matplotlib_fails_before_the_run(no_matplotlib, tmp_path):
     with pytest.raises(ValueError, match=r"install gmmap\[sim\]"):
-        services.sim.run.run_sim(SimOptions(report=str(tmp_path / "report")))
+        services.sim.run.run_sim(load_config(overrides={"sim": {"report": str(tmp_path / "report")}}))
 
 
 def test_the_cli_says_what_to_install(no_matplotlib, tmp_path, capsys):
