@@ -7,11 +7,13 @@ seen). sigma^2 is the `variance` parameter, DEFAULT_VARIANCE (the paper's 0.06) 
 The continuous picture, grey = 1 - p (`probability_png`), stays for looking at the evidence itself;
 both draw p = 0.5 in the same mid grey.
 
-3D maps are seen from above. Classes: each voxel is classified first, then a column is occupied if
-any voxel is, free if none is and some is free, unknown if all are unknown. A dead-band voxel counts
-as unobserved there, not as a veto on free: the dead band is Eq. 12's statement that its evidence
-decides nothing. Probabilities: a column is as occupied as its most occupied voxel or, if none is
-above 0.5, as free as its freest one.
+3D maps are seen from above. Classes: each voxel is classified, then a column is occupied if any
+voxel is, free if none is and some is free, unknown if all are unknown. A dead-band voxel counts as
+unobserved there, not as a veto on free: the dead band is Eq. 12's statement that its evidence
+decides nothing, and as a veto it would leave almost no column free (Kurt3D at 0.25 m and sigma^2 =
+0.06: 49 free columns instead of 1561, as nearly every column holds a voxel in the band).
+Probabilities: a column is as occupied as its most occupied voxel or, if none is above 0.5, as free
+as its freest one.
 """
 from __future__ import annotations
 
@@ -31,18 +33,19 @@ def top_down_probability(prob: np.ndarray) -> np.ndarray:
     return np.where(top > 0.5, top, bottom)
 
 
-def top_down_classes(classes: np.ndarray) -> np.ndarray:
-    """A [iz, iy, ix] map of Eq. 12 classes seen from above, [iy, ix] (rule in the module docstring)."""
-    occupied = (classes == OCCUPIED).any(axis=0)
-    free = (classes == FREE).any(axis=0)
+def top_down_classes(prob: np.ndarray, variance: float) -> np.ndarray:
+    """The Eq. 12 classes of a [iz, iy, ix] probability map seen from above, [iy, ix] (rule in the
+    module docstring). Some voxel is occupied exactly when the column's most occupied one is, and some
+    is free exactly when its freest one is (each class is one threshold on p), so only those two are
+    classified: the same classes as voxel by voxel, without classifying every voxel."""
+    occupied = classify(prob.max(axis=0), variance) == OCCUPIED
+    free = classify(prob.min(axis=0), variance) == FREE
     return np.where(occupied, OCCUPIED, np.where(free, FREE, UNKNOWN)).astype(np.int8)
 
 
 def class_grey(prob: np.ndarray, variance: float = DEFAULT_VARIANCE) -> np.ndarray:
     """[iy, ix] grey levels of the Eq. 12 classes of a 2D or 3D probability map, CLASS_GREY's."""
-    classes = classify(prob, variance)
-    if classes.ndim == 3:
-        classes = top_down_classes(classes)
+    classes = top_down_classes(prob, variance) if prob.ndim == 3 else classify(prob, variance)
     grey = np.full(classes.shape, CLASS_GREY[UNKNOWN], dtype=np.uint8)
     grey[classes == FREE] = CLASS_GREY[FREE]
     grey[classes == OCCUPIED] = CLASS_GREY[OCCUPIED]
