@@ -199,8 +199,8 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         shade: Shade = Query(Shade.classes, description=(
             "png only. classes: the classification of Eq. 12 (free white, occupied black, unknown grey); 3D maps "
             "classify each voxel, then a column is occupied if any voxel is, free if none is and some is free, "
-            "else unknown. probability: grey = 1 - p; a 3D column shows its most occupied voxel if one is above "
-            "0.5, else its freest")),
+            "else unknown (a voxel in the dead band counts as unseen). probability: grey = 1 - p; a 3D column "
+            "shows its most occupied voxel if one is above 0.5, else its freest")),
         variance: float = Query(DEFAULT_VARIANCE, description=(
             f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} (the "
             f"variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for p <= (1 - sqrt(1 - 4 sigma^2))"
