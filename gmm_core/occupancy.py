@@ -6,6 +6,7 @@ import numpy as np
 DEFAULT_PRIOR = 0.2  # N_p: measured on Intel (docs/BENCHMARKS.md), better than 1 for sparse data
 
 OCCUPIED, FREE, UNKNOWN = 1, 0, -1
+DEFAULT_VARIANCE = 0.06  # sigma^2 of Eq. 12 for maps shown to people: the paper's value (Sec. V, Fig. 8)
 
 
 def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PRIOR) -> np.ndarray:

@@ -26,8 +26,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.staticfiles import StaticFiles
 
+from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
-from services.render import occupancy_png
+from services.render import occupancy_png, probability_png
 
 from . import params
 from .limits import MAX_BODY, BodyLimit
@@ -39,12 +40,20 @@ VIEWER = Path(__file__).with_name("static") / "viewer.html"
 SWAGGER_FILES = Path(fastapi_offline.__file__).with_name("static")
 SWAGGER_STATIC = "/static/swagger-ui"
 GRID_HEADERS = ["X-Grid-Origin", "X-Grid-Resolution", "X-Grid-Shape"]
+VIEWER_DEFAULT_VARIANCE = "__DEFAULT_VARIANCE__"  # in viewer.html, replaced by DEFAULT_VARIANCE when served
 
 
 class Format(str, Enum):
     npy = "npy"
     png = "png"
     msgpack = "msgpack"
+
+
+class Shade(str, Enum):
+    """What a PNG shows: the Eq. 12 classes, or grey = 1 - p."""
+
+    classes = "classes"
+    probability = "probability"
 
 
 MEDIA_TYPES = {Format.npy: "application/x-npy", Format.png: "image/png", Format.msgpack: "application/msgpack"}
@@ -81,8 +90,9 @@ ERRORS = {status: {"model": ErrorBody, "description": text} for status, text in 
 
 class EncodedTiles:
     """Reply bodies of recent tiles: a cached tile is the same read-only array until it changes,
-    so its PNG (the costliest part of a cached reply) is encoded once. One body per request
-    (format, grid, robots), for the array it was made from; at most `max_bytes` in all."""
+    so its PNG (the costliest part of a cached reply) is encoded once. One body per request (format,
+    and a PNG's shade and variance; grid; robots), for the array it was made from; at most `max_bytes`
+    in all."""
 
     def __init__(self, max_bytes: int = 64 << 20):
         self._max_bytes = max_bytes
@@ -131,7 +141,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     """
     app = FastAPI(title="gmmap map server", version="1", description=(
         "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
-        "Grids follow DESIGN.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
+        "Grids follow docs/ARCHITECTURE.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
         "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."), responses=ERRORS,
         docs_url=None, redoc_url=None)  # /docs is served below from local files: no CDN on a robot's network
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY)
@@ -139,7 +149,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
                            expose_headers=GRID_HEADERS)
     fmap = state.fleet_map
-    viewer_html = VIEWER.read_text(encoding="utf-8")
+    viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(DEFAULT_VARIANCE))
     encoded = EncodedTiles()
     synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0}
     sync_lock = threading.Lock()
@@ -174,8 +184,9 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
     # -- occupancy ------------------------------------------------------------------------
     @app.get("/v1/occupancy", summary="Occupancy probabilities of a box at a resolution",
              responses={200: {"content": {m: {} for m in MEDIA_TYPES.values()},
-                              "description": "npy: float32 (ny, nx) or (nz, ny, nx); png: top-down grey image, "
-                                             "north up; msgpack: a protocol MapReply"}})
+                              "description": "npy: float32 probabilities (ny, nx) or (nz, ny, nx); png: 8-bit grey "
+                                             "image seen from above, north up (see `shade`); msgpack: a protocol "
+                                             "MapReply of the probabilities"}})
     def occupancy(
         bbox: str = Query(..., description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres",
                           json_schema_extra={"pattern": params.BBOX_PATTERN}),
@@ -185,6 +196,17 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         format: Format = Query(Format.npy, description="npy, png or msgpack"),
         robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent",
                                    json_schema_extra={"pattern": params.ROBOTS_PATTERN}),
+        shade: Shade = Query(Shade.classes, description=(
+            "png only. classes: the classification of Eq. 12 (free white, occupied black, unknown grey); 3D maps "
+            "classify each voxel, then a column is occupied if any voxel is, free if none is and some is free, "
+            "else unknown (a voxel in the dead band counts as unseen). probability: grey = 1 - p; a 3D column "
+            "shows its most occupied voxel if one is above 0.5, else its freest")),
+        variance: float = Query(DEFAULT_VARIANCE, description=(
+            f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} (the "
+            f"variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for p <= (1 - sqrt(1 - 4 sigma^2))"
+            f" / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between and at 0.5 (nothing seen); a "
+            f"smaller sigma^2 widens that dead band. Default {DEFAULT_VARIANCE}, the paper's"),
+            **_range(params.MIN_VARIANCE, params.MAX_VARIANCE)),
     ) -> Response:
         start = time.perf_counter()
         res = params.resolution(resolution)
@@ -192,8 +214,11 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         params.check_dimension(len(lo), fmap.dim, "bbox")
         grid = params.grid(lo, hi, res)
         selected = params.robots(robots)
+        sigma2 = params.variance(variance)
+        picture = (shade, sigma2 if shade is Shade.classes else None) if format is Format.png else None
         prob = occupancy_of(grid, selected)
-        reply = (format, tuple(grid.origin), grid.resolution, grid.shape, None if selected is None else tuple(selected))
+        reply = (format, picture, tuple(grid.origin), grid.resolution, grid.shape,
+                 None if selected is None else tuple(selected))
         body = encoded.get(reply, prob)
         if body is None:
             if format is Format.npy:
@@ -201,7 +226,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
                 np.save(buffer, np.asarray(prob, dtype=np.float32))
                 body = buffer.getvalue()
             elif format is Format.png:
-                body = occupancy_png(prob)
+                body = occupancy_png(prob, sigma2) if shade is Shade.classes else probability_png(prob)
             else:
                 body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
             encoded.put(reply, prob, body)

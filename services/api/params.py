@@ -18,6 +18,7 @@ MAX_RESOLUTION = 10.0
 MAX_CELLS = 16_000_000  # per occupancy request
 MAX_POINTS = 10_000  # per point request
 MAX_COORDINATE = 1e9  # metres from the world origin, for points
+MIN_VARIANCE, MAX_VARIANCE = 0.0, 0.25  # sigma^2 = p (1 - p) of Eq. 12 lies in [0, 1/4]
 
 # The text formats, stated once: the parsers below accept exactly these (float() alone would also
 # take "1_0" or non-ASCII digits), and the OpenAPI schema publishes them as patterns. Blanks are
@@ -60,6 +61,13 @@ def resolution(value: float) -> float:
     return float(value)
 
 
+def variance(value: float) -> float:
+    """sigma^2 of Eq. 12's dead band: a Bernoulli variance p (1 - p), so at most 0.25."""
+    if not (math.isfinite(value) and MIN_VARIANCE <= value <= MAX_VARIANCE):
+        raise ApiError("variance", f"sigma^2 of Eq. 12 must be between {MIN_VARIANCE} and {MAX_VARIANCE}, got {value}")
+    return float(value)
+
+
 def bbox(text: str) -> tuple[np.ndarray, np.ndarray]:
     """`xmin,ymin,xmax,ymax` or `xmin,ymin,zmin,xmax,ymax,zmax` -> (lo, hi)."""
     values = numbers(text, "bbox")
@@ -78,7 +86,7 @@ def check_dimension(d: int, map_dim: int | None, field: str) -> None:
 
 
 def grid(lo: np.ndarray, hi: np.ndarray, res: float) -> Grid:
-    """The grid of DESIGN.md over [lo, hi]; 422 above MAX_CELLS, counted before anything is built."""
+    """The grid of docs/ARCHITECTURE.md over [lo, hi]; 422 above MAX_CELLS, counted before anything is built."""
     spans = [(h - l) / res for l, h in zip(lo.tolist(), hi.tolist())]  # Python floats: inf, no warning
     cells = math.prod(max(math.ceil(n - 1e-9), 1) for n in spans) if all(map(math.isfinite, spans)) else math.inf
     if cells > MAX_CELLS:

@@ -15,11 +15,13 @@ import pytest
 from PIL import Image
 
 from gmm_core import Grid, fit_scan
+from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, ScanMessage, decode
 from services.api import create_app
 from services.map_server.fleet_map import FleetMap
 from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
+from services.render import occupancy_png, probability_png
 from support.net import get, post
 from support.uvicorn_thread import Server
 
@@ -78,6 +80,22 @@ def test_png_and_msgpack(server):
     assert np.array_equal(np.load(io.BytesIO(npy)), reply.probabilities)
 
 
+def test_png_shows_eq12_classes_at_a_variance(server, fleet_map):
+    url = f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format=png"
+    prob = fleet_map.occupancy(Grid.from_bbox([-10, -20], [10, 5], 0.1))
+    default = get(url)[2]
+    assert default == get(url + f"&shade=classes&variance={DEFAULT_VARIANCE}")[2] == occupancy_png(prob)
+    assert set(np.unique(np.asarray(Image.open(io.BytesIO(default)))).tolist()) == {0, 128, 255}
+    wide_open = get(url + "&variance=0.25")[2]
+    assert wide_open == occupancy_png(prob, 0.25) != default
+    black = [(np.asarray(Image.open(io.BytesIO(png))) == 0).sum() for png in (default, wide_open)]
+    assert 0 < black[0] < black[1]  # a larger sigma^2 narrows the dead band: more cells are called occupied
+    assert get(url + "&shade=probability")[2] == probability_png(prob)
+    assert get(url + "&shade=probability&variance=0.2")[2] == probability_png(prob)  # variance: classes only
+    npy = f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1"
+    assert get(npy + "&variance=0.25")[2] == get(npy)[2]  # arrays stay probabilities
+
+
 def test_same_query_same_bytes(server):
     url = f"{server.url}/v1/occupancy?bbox=-3.3,-7.1,4.05,1.2&resolution=0.07&format=npy"
     assert get(url)[2] == get(url)[2]
@@ -99,6 +117,11 @@ def test_same_query_same_bytes(server):
     ("bbox=0,0,0,1,1,1&resolution=0.1", "bbox", "2D"),
     ("bbox=0,0,1,1&resolution=0.1&format=tiff", "format", "npy"),
     ("bbox=0,0,1,1&resolution=0.1&robots=bad%20name", "robots", "A-Za-z0-9"),
+    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=0.26", "variance", "between 0.0 and 0.25"),
+    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=-0.01", "variance", "between 0.0 and 0.25"),
+    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=nan", "variance", "between 0.0 and 0.25"),
+    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=abc", "variance", ""),
+    ("bbox=0,0,1,1&resolution=0.1&format=png&shade=colour", "shade", "classes"),
     ("resolution=0.1", "bbox", ""),
 ])
 def test_bad_requests_are_422_json(server, query, field, words):
@@ -223,6 +246,12 @@ def test_health_metrics_docs(server):
         assert get(f"{server.url}{asset}")[0] == 200, asset
     spec = json.loads(get(f"{server.url}/openapi.json")[2])
     assert "/v1/occupancy" in spec["paths"] and "/v1/robots" in spec["paths"]
+    assert "DESIGN.md" not in json.dumps(spec) and "docs/ARCHITECTURE.md" in spec["info"]["description"]
+    parameters = {p["name"]: p for p in spec["paths"]["/v1/occupancy"]["get"]["parameters"]}
+    variance = parameters["variance"]
+    assert variance["schema"]["minimum"] == 0 and variance["schema"]["maximum"] == 0.25
+    assert variance["schema"]["default"] == DEFAULT_VARIANCE and "Eq. 12" in variance["description"]
+    assert parameters["shade"]["schema"]["default"] == "classes"
     assert get(f"{server.url}/nowhere")[0] == 404
 
 
@@ -245,6 +274,7 @@ def test_viewer_is_served(server):
     status, headers, body = get(f"{server.url}/")
     assert status == 200 and headers["Content-Type"].startswith("text/html")
     assert b"<canvas" in body and b"v1/occupancy" in body and b"http" not in body.split(b"<script>")[1]
+    assert f"const DEFAULT_VARIANCE = {DEFAULT_VARIANCE!r};".encode() in body  # the server's, written in
 
 
 def headless_chromium(tmp_path, *args: str) -> subprocess.CompletedProcess:
@@ -265,9 +295,12 @@ def test_api_docs_render_offline(server, tmp_path):
 
 @pytest.mark.skipif(shutil.which("chromium") is None,
                     reason="Debian chromium is not on PATH (make test installs it when run as root)")
-def test_viewer_draws_the_map(server, tmp_path):
+@pytest.mark.parametrize("query, occupied_at_least", [("", 0.0003), ("?variance=0.25", 0.003),
+                                                        ("?shade=probability", 0.003)])
+def test_viewer_draws_the_map(server, tmp_path, query, occupied_at_least):
+    """The Eq. 12 classes (the default layer, at the default and at a chosen variance) and the probabilities."""
     shot = tmp_path / "viewer.png"
-    headless_chromium(tmp_path, f"--screenshot={shot}", f"{server.url}/")
+    headless_chromium(tmp_path, f"--screenshot={shot}", f"{server.url}/{query}")
     assert shot.exists(), "chromium wrote no screenshot"
     image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     assert image.shape[:2] == (600, 800)
@@ -276,7 +309,10 @@ def test_viewer_draws_the_map(server, tmp_path):
     free = (centre > 235).mean()
     occupied = (centre < 70).mean()
     assert free > 0.05, f"only {free:.1%} free (near-white) map pixels: the map is not drawn"
-    assert occupied > 0.003, f"only {occupied:.2%} occupied (dark) map pixels"
+    assert occupied > occupied_at_least, f"only {occupied:.2%} occupied (dark) map pixels"
+    if "probability" not in query:  # classes: white, black or the grey of unknown, nothing between
+        plain = (image.max(axis=2) == image.min(axis=2))[100:500, 150:650]
+        assert np.isin(centre[plain], [0, 128, 255]).mean() > 0.999
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
     trajectory = (r > 180) & (g < 80) & (b < 120)  # the first robot's colour, #e6194b
     assert trajectory.sum() > 100, "the robot's trajectory is not drawn"
