@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmm_core.grid import Grid
-from gmm_core.occupancy import DEFAULT_PRIOR
+from gmm_core.occupancy import DEFAULT_PRIOR, DEFAULT_VARIANCE
 from gmm_core.pose import Pose
 from gmm_core.raytrace import trace_rays
 from gmm_core.sampling import scan_rays
@@ -28,10 +28,13 @@ class ReconstructionConfig:
 
     samples_per_cell: float = 4.0  # Monte-Carlo samples per cell of the queried resolution (Sec. III-C3), > 0
     prior: float = DEFAULT_PRIOR  # N_p of Eq. 11, pseudo-counts, > 0
+    variance: float = DEFAULT_VARIANCE  # sigma^2 of Eq. 12's dead band, in [0, 0.25], where maps are classified
 
     def __post_init__(self):
         require_number("reconstruction.samples_per_cell", self.samples_per_cell, positive=True)
         require_number("reconstruction.prior", self.prior, positive=True)
+        if not 0.0 <= require_number("reconstruction.variance", self.variance, positive=False) <= 0.25:
+            raise ValueError(f"reconstruction.variance: sigma^2 of Eq. 12 must lie in [0, 0.25], got {self.variance}")
 
 
 def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],

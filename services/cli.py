@@ -97,7 +97,7 @@ def cmd_replay(args) -> int:
                             origin=g.origin, resolution=np.float64(g.resolution))
     if args.png:
         with open(args.png, "wb") as f:
-            f.write(occupancy_png(result.prob))
+            f.write(occupancy_png(result.prob, config.reconstruction.variance))
     view = " (top-down projection)" if g.dim == 3 else ""
     print(f"{result.scans} scans, {result.components} components, grid {'x'.join(map(str, g.shape))} "
           f"at {g.resolution} m from {np.round(g.origin, 3).tolist()}, {time.perf_counter() - t0:.1f} s"
@@ -183,6 +183,8 @@ def _reconstruction_flags(p: argparse.ArgumentParser) -> None:
     _setting(p, "--samples-per-cell", "reconstruction.samples_per_cell", type=float,
              help="Monte-Carlo samples per cell of the queried resolution")
     _setting(p, "--prior", "reconstruction.prior", type=float, help="N_p of Eq. 11")
+    _setting(p, "--variance", "reconstruction.variance", type=float,
+             help="sigma^2 of Eq. 12: PNGs show free / occupied / unknown by its dead band")
 
 
 def _fleet_id(text: str) -> str:

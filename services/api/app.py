@@ -134,11 +134,13 @@ def error(status: int, field: str | None, message: str, headers=None) -> JSONRes
                         headers=headers)
 
 
-def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
+def create_app(state, *, cors_origins: list[str] | None = None, default_variance: float = DEFAULT_VARIANCE) -> FastAPI:
     """The FastAPI app over one server's `state` (a ServerState: fleet, fleet_map, metrics).
 
-    CORS is off unless `cors_origins` is given.
+    CORS is off unless `cors_origins` is given. `default_variance` is sigma^2 of Eq. 12 for PNGs that
+    ask for none (the server's reconstruction.variance).
     """
+    default_variance = params.variance(default_variance)
     app = FastAPI(title="gmmap map server", version="1", description=(
         "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
         "Grids follow docs/ARCHITECTURE.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
@@ -149,7 +151,7 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
         app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
                            expose_headers=GRID_HEADERS)
     fmap = state.fleet_map
-    viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(DEFAULT_VARIANCE))
+    viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(default_variance))
     encoded = EncodedTiles()
     synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0}
     sync_lock = threading.Lock()
@@ -201,11 +203,11 @@ def create_app(state, *, cors_origins: list[str] | None = None) -> FastAPI:
             "classify each voxel, then a column is occupied if any voxel is, free if none is and some is free, "
             "else unknown (a voxel in the dead band counts as unseen). probability: grey = 1 - p; a 3D column "
             "shows its most occupied voxel if one is above 0.5, else its freest")),
-        variance: float = Query(DEFAULT_VARIANCE, description=(
+        variance: float = Query(default_variance, description=(
             f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} (the "
             f"variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for p <= (1 - sqrt(1 - 4 sigma^2))"
             f" / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between and at 0.5 (nothing seen); a "
-            f"smaller sigma^2 widens that dead band. Default {DEFAULT_VARIANCE}, the paper's"),
+            f"smaller sigma^2 widens that dead band. Default: the server's (the paper's {DEFAULT_VARIANCE} unless set)"),
             **_range(params.MIN_VARIANCE, params.MAX_VARIANCE)),
     ) -> Response:
         start = time.perf_counter()

@@ -103,7 +103,7 @@ class ZenohSide:
         self.session.close()
 
 
-def start_http(state: ServerState, address: str):
+def start_http(state: ServerState, address: str, variance: float):
     """uvicorn on host:port in a thread; (server, thread), or None when the API is absent."""
     try:
         from services.api.app import create_app
@@ -115,7 +115,7 @@ def start_http(state: ServerState, address: str):
     host, _, port = address.rpartition(":")
     # h11 refuses a request head (request line with its query string, and headers) over this size
     # with a plain 400; 1 MiB holds the longest GET the API accepts (10,000 points).
-    config = uvicorn.Config(create_app(state), host=host or "127.0.0.1", port=int(port),
+    config = uvicorn.Config(create_app(state, default_variance=variance), host=host or "127.0.0.1", port=int(port),
                             log_level="warning", lifespan="on", h11_max_incomplete_event_size=MAX_REQUEST_HEAD)
     server = uvicorn.Server(config)
     # uvicorn leaves signal handling to the main thread when it runs elsewhere.
@@ -153,7 +153,7 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
         except zenoh.ZError as error:
             raise OSError(f"cannot open the Zenoh session: {error}") from None
         if options.http:
-            http = start_http(state, options.http)
+            http = start_http(state, options.http, reconstruction.variance)
         print(f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
               f"zenoh {','.join(options.listen) or '-'}"
               f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
