@@ -61,6 +61,8 @@ def world_boxes(poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray,
 
 @dataclass
 class Node:
+    """One scan as the map holds it: its model stays in the node frame, only its pose changes."""
+
     key: NodeKey
     model: ScanModel  # in the node frame, never refitted
     estimate: Pose  # from the scan message, in the robot's map frame
@@ -87,6 +89,8 @@ class Posed(NamedTuple):
 
 @dataclass
 class Robot:
+    """One robot's nodes, its pose graph's corrections and anchor, and what the API reports of it."""
+
     nodes: dict[int, Node] = field(default_factory=dict)
     pending: dict[int, Pose] = field(default_factory=dict)  # corrections for nodes not received yet
     anchor: Pose | None = None  # robot map frame -> world
@@ -159,7 +163,7 @@ class ChangeLog:
 
     def extend(self, keys: Iterable[NodeKey]) -> None:
         self._keys.extend(keys)
-        if len(self._keys) > CHANGE_LOG_LIMIT:  # halved, so that trimming costs O(1) an entry
+        if len(self._keys) > CHANGE_LOG_LIMIT:  # down to half: one O(length) drop per LIMIT / 2 entries
             self.drop_before(self.end - CHANGE_LOG_LIMIT // 2)
 
     def since(self, position: int) -> list[NodeKey]:

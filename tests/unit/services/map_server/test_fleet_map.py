@@ -133,7 +133,7 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     """Entries every cached tile has read are dropped; a tile left alone holds the log back only up
     to CHANGE_LOG_LIMIT, and is traced afresh once the log no longer covers it. Every tile, updated
     or retraced, has the bytes of a fresh one."""
-    monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: more than a step
+    monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: 32, still over one step
     afresh, trace_afresh = [], TileCache._trace_afresh
 
     def traced_afresh(cache, tile, reaching):
