@@ -9,7 +9,9 @@ from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
+from services.map_server import nodes
 from services.map_server.fleet_map import FleetMap
+from services.map_server.tiles import TileCache
 
 GRID = Grid.from_bbox([-8.0, -12.0], [8.0, 4.0], 0.1)
 
@@ -125,6 +127,49 @@ def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted):
             served.apply_poses(update)
         assert np.array_equal(served.occupancy(GRID), fresh()), f"step {step}"
     assert served.cache_stats()["misses"] == 1 and served.cache_stats()["updates"] == 3
+
+
+def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, monkeypatch):
+    """Entries every cached tile has read are dropped; a tile left alone holds the log back only up
+    to CHANGE_LOG_LIMIT, and is traced afresh once the log no longer covers it. Every tile, updated
+    or retraced, has the bytes of a fresh one."""
+    monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: 32, still over one step
+    afresh, trace_afresh = [], TileCache._trace_afresh
+
+    def traced_afresh(cache, tile, reaching):
+        afresh.append((cache, tile.grid))
+        trace_afresh(cache, tile, reaching)
+
+    monkeypatch.setattr(TileCache, "_trace_afresh", traced_afresh)
+    scans, models = fitted
+    messages = [ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i))
+                for i, (s, m) in enumerate(zip(scans, models))]
+    corner = Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], 0.1)
+
+    def fresh(grid):
+        fleet = FleetMap("f")
+        for msg in messages[:added]:
+            fleet.add_scan(msg)
+        for update in updates:
+            fleet.apply_poses(update)
+        return fleet.occupancy(grid)
+
+    served, added, updates = FleetMap("f"), 0, []
+    for step, upto in enumerate(range(20, 121, 20)):  # 20 scans and 10 corrections a step: 30 entries
+        for msg in messages[added:upto]:
+            served.add_scan(msg)
+        added = upto
+        updates.append(PoseGraphUpdate("f", "r1", step + 1, tuple((s.index, s.pose) for s in scans[upto - 20:upto:2])))
+        served.apply_poses(updates[-1])
+        assert served.cache_stats()["change_log"] <= 64
+        assert np.array_equal(served.occupancy(GRID), fresh(GRID)), f"step {step}"
+        if step == 0:
+            assert served.cache_stats()["change_log"] == 0  # the only tile read every entry
+            served.occupancy(corner)  # cached, then left alone: it holds the log back
+    assert served.cache_stats()["change_log"] > 0
+    assert np.array_equal(served.occupancy(corner), fresh(corner))
+    # GRID: traced afresh once, then updated by difference; corner: afresh when new and when left behind.
+    assert [grid is GRID for cache, grid in afresh if cache is served._tiles] == [True, False, False]
 
 
 def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted):

@@ -1,0 +1,306 @@
+"""The node store of a fleet map: every robot's scan models in their node frames, the pose graph
+that places them (Eq. 2, applied at query time), a spatial index of their world boxes, and the
+change log a cached tile reads to learn what moved since it was traced.
+
+Not thread-safe: the FleetMap calls it under its lock.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from gmm_core import Grid, Pose, ScanModel
+from gmm_core.sampling import scan_seed
+from protocol import PoseGraphUpdate, ScanMessage
+
+CHANGE_LOG_LIMIT = 1 << 20  # entries (8 bytes each) kept for tiles that are not asked for again
+
+
+class NodeKey(NamedTuple):
+    """Which node: one scan of one robot."""
+
+    robot: str
+    node: int  # the scan's node id, as the robot numbers them
+
+
+class Stamp(NamedTuple):
+    """Changes whenever a node's world pose may have: equal stamps, equal poses."""
+
+    pose_rev: int  # the node's corrections so far
+    anchor_rev: int  # its robot's anchor changes so far
+
+
+def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
+    """Node-frame box every ray of the scan stays in: sensor origin plus 3-sigma of all components."""
+    lo, hi = model.origin.copy(), model.origin.copy()
+    for mixture in (model.occupied, model.free):
+        m_lo, m_hi = mixture.bounds(3.0)
+        lo, hi = np.minimum(lo, m_lo), np.maximum(hi, m_hi)
+    return lo, hi
+
+
+def world_boxes(poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray,
+                anchor: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes (n, d) around n node-frame boxes, each moved by anchor ∘ its pose."""
+    if not poses:
+        return np.zeros((0, lo.shape[-1])), np.zeros((0, lo.shape[-1]))
+    R = np.array([p.R for p in poses])
+    t = np.array([p.t for p in poses])
+    if anchor is not None:
+        R, t = anchor.R @ R, t @ anchor.R.T + anchor.t
+    # Moving a box: centre by the pose, half-extent by |R| (the tight bound on every corner).
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    moved = np.einsum("nij,nj->ni", R, centre) + t
+    reach = np.einsum("nij,nj->ni", np.abs(R), half)
+    return moved - reach, moved + reach
+
+
+@dataclass
+class Node:
+    """One scan as the map holds it: its model stays in the node frame, only its pose changes."""
+
+    key: NodeKey
+    model: ScanModel  # in the node frame, never refitted
+    estimate: Pose  # from the scan message, in the robot's map frame
+    seed: int  # of its samples: scan_seed(robot, node)
+    local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
+    local_hi: np.ndarray
+    corrected: Pose | None = None  # from the newest pose-graph update
+    pose_rev: int = 0  # bumped whenever `corrected` changes
+
+    @property
+    def map_pose(self) -> Pose:
+        """In the robot's map frame: the newest correction, else the scan's own estimate."""
+        return self.corrected or self.estimate
+
+
+class Posed(NamedTuple):
+    """A node where it stands at one moment: what a tile counts in, and what it takes out again."""
+
+    key: NodeKey
+    stamp: Stamp  # of `pose`
+    node: Node
+    pose: Pose  # node frame -> world
+
+
+@dataclass
+class Robot:
+    """One robot's nodes, its pose graph's corrections and anchor, and what the API reports of it."""
+
+    nodes: dict[int, Node] = field(default_factory=dict)
+    pending: dict[int, Pose] = field(default_factory=dict)  # corrections for nodes not received yet
+    anchor: Pose | None = None  # robot map frame -> world
+    anchor_rev: int = 0  # bumped whenever `anchor` changes
+    revision: int = -1  # of the newest pose-graph update applied
+    bytes_received: int = 0  # wire bytes of its scans
+    last_seen: float = 0.0  # time.time() of its newest message
+    components: int = 0  # of all its scan models
+
+    def world_pose(self, node: Node) -> Pose:
+        return self.anchor.compose(node.map_pose) if self.anchor is not None else node.map_pose
+
+    def posed(self, node: Node) -> Posed:
+        return Posed(node.key, Stamp(node.pose_rev, self.anchor_rev), node, self.world_pose(node))
+
+
+class NodeIndex:
+    """World boxes of every node: a row appended as each scan arrives, rewritten when it moves."""
+
+    def __init__(self, dim: int):
+        self.keys: list[NodeKey] = []
+        self._rows: dict[NodeKey, int] = {}
+        self._lo = np.empty((1024, dim))
+        self._hi = np.empty((1024, dim))
+
+    def put(self, keys: Sequence[NodeKey], lo: np.ndarray, hi: np.ndarray) -> None:
+        rows = np.empty(len(keys), dtype=np.int64)
+        for i, key in enumerate(keys):
+            row = self._rows.get(key)
+            if row is None:
+                row = self._rows[key] = len(self.keys)
+                self.keys.append(key)
+            rows[i] = row
+        if len(self.keys) > len(self._lo):
+            grow = ((0, len(self._lo)), (0, 0))
+            self._lo, self._hi = np.pad(self._lo, grow), np.pad(self._hi, grow)
+        self._lo[rows], self._hi[rows] = lo, hi
+
+    def reaching(self, lo: np.ndarray, hi: np.ndarray) -> list[NodeKey]:
+        """Keys of the nodes whose box meets the box (lo, hi), in the order they arrived."""
+        n = len(self.keys)
+        meets = np.all(self._lo[:n] <= hi, axis=1) & np.all(self._hi[:n] >= lo, axis=1)
+        return [self.keys[i] for i in np.flatnonzero(meets)]
+
+    def meets(self, keys: Sequence[NodeKey], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Whether the box of each of `keys` meets the box (lo, hi)."""
+        rows = np.fromiter((self._rows[k] for k in keys), dtype=np.int64, count=len(keys))
+        return np.all(self._lo[rows] <= hi, axis=1) & np.all(self._hi[rows] >= lo, axis=1)
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        n = len(self.keys)
+        return (self._lo[:n].min(axis=0), self._hi[:n].max(axis=0)) if n else None
+
+
+class ChangeLog:
+    """Keys of the nodes added or moved, in order. A position counts every entry ever appended, so
+    it stays valid when old entries are dropped; `start` is the oldest position still held."""
+
+    def __init__(self):
+        self._keys: list[NodeKey] = []
+        self.start = 0
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    @property
+    def end(self) -> int:
+        """The position the next entry will have."""
+        return self.start + len(self._keys)
+
+    def extend(self, keys: Iterable[NodeKey]) -> None:
+        self._keys.extend(keys)
+        if len(self._keys) > CHANGE_LOG_LIMIT:  # down to half: one O(length) drop per LIMIT / 2 entries
+            self.drop_before(self.end - CHANGE_LOG_LIMIT // 2)
+
+    def since(self, position: int) -> list[NodeKey]:
+        """Each key logged from `position` on, once, in the order of first appearance."""
+        if position < self.start:
+            raise ValueError(f"change log position {position} was dropped (the log starts at {self.start})")
+        return list(dict.fromkeys(self._keys[position - self.start:]))
+
+    def drop_before(self, position: int) -> None:
+        if position > self.start:
+            del self._keys[:position - self.start]
+            self.start = position
+
+
+class NodeStore:
+    """The nodes of every robot of a fleet, their poses, their boxes and the log of their changes.
+
+    `moved(lo, hi)` is called with the world boxes (n, d) that new or moved nodes entered or left.
+    """
+
+    def __init__(self, moved: Callable[[np.ndarray, np.ndarray], None]):
+        self._moved = moved
+        self.dim: int | None = None  # of the first scan: a map is 2D or 3D for good
+        self.robots: dict[str, Robot] = {}
+        self.log = ChangeLog()
+        self._index: NodeIndex | None = None  # from the first scan on
+
+    def add(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
+        """Hold a scan; False if (robot, node) is already held (a resend)."""
+        if self.dim is None:
+            self.dim = msg.dim
+            self._index = NodeIndex(msg.dim)
+        elif msg.dim != self.dim:
+            raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
+        robot = self.robots.setdefault(msg.robot, Robot())
+        robot.last_seen = time.time()
+        robot.bytes_received += size_bytes
+        if msg.node in robot.nodes:
+            return False
+        lo, hi = local_reach(msg.model)
+        node = Node(NodeKey(msg.robot, msg.node), msg.model, msg.pose, scan_seed(msg.robot, msg.node), lo, hi,
+                    corrected=robot.pending.pop(msg.node, None))
+        robot.nodes[msg.node] = node
+        robot.components += msg.model.n_components
+        world_lo, world_hi = world_boxes([node.map_pose], lo[None], hi[None], robot.anchor)
+        self._index.put([node.key], world_lo, world_hi)
+        self.log.extend([node.key])
+        self._moved(world_lo, world_hi)
+        return True
+
+    def apply(self, update: PoseGraphUpdate) -> bool:
+        """Re-pose nodes (Eq. 2 at query time); False if the revision is older than the held one.
+
+        An update with the held revision is applied too: a large revision may come in parts.
+        """
+        if self.dim is not None and any(p.dim != self.dim for _, p in update.poses):
+            raise ValueError(f"poses: this map is {self.dim}D")
+        robot = self.robots.setdefault(update.robot, Robot())
+        robot.last_seen = time.time()
+        if update.revision < robot.revision:
+            return False
+        if update.anchor is not None:
+            moved = list(robot.nodes.values())  # a new anchor moves every node of the robot
+            robot.anchor, old_anchor = update.anchor, robot.anchor
+            robot.anchor_rev += 1
+        else:
+            moved, old_anchor = [], robot.anchor
+        old_poses = {n.key: n.map_pose for n in moved}
+        for node_id, pose in update.poses:
+            node = robot.nodes.get(node_id)
+            if node is None:
+                robot.pending[node_id] = pose  # its scan is still on the way
+            elif node.corrected is None or not (np.array_equal(node.corrected.R, pose.R)
+                                                and np.array_equal(node.corrected.t, pose.t)):
+                old_poses.setdefault(node.key, node.map_pose)
+                node.corrected = pose
+                node.pose_rev += 1
+                moved.append(node)
+        robot.revision = update.revision
+        moved = list({n.key: n for n in moved}.values())
+        if not moved:
+            return True
+        lo = np.array([n.local_lo for n in moved])
+        hi = np.array([n.local_hi for n in moved])
+        old_lo, old_hi = world_boxes([old_poses[n.key] for n in moved], lo, hi, old_anchor)
+        new_lo, new_hi = world_boxes([n.map_pose for n in moved], lo, hi, robot.anchor)
+        keys = [n.key for n in moved]
+        self._index.put(keys, new_lo, new_hi)
+        self.log.extend(keys)
+        self._moved(np.concatenate([old_lo, new_lo]), np.concatenate([old_hi, new_hi]))
+        return True
+
+    def check_dim(self, grid: Grid) -> None:
+        if self.dim is not None and grid.dim != self.dim:
+            raise ValueError(f"bbox: this map is {self.dim}D, the query is {grid.dim}D")
+
+    def posed(self, key: NodeKey) -> Posed:
+        """Node `key` where it stands now."""
+        robot = self.robots[key.robot]
+        return robot.posed(robot.nodes[key.node])
+
+    def reaching(self, grid: Grid, robots: Sequence[str] | None) -> dict[NodeKey, Posed]:
+        """Every node (of all robots or of `robots`) that can reach `grid` now."""
+        self.check_dim(grid)
+        if self._index is None:
+            return {}
+        wanted = None if robots is None else set(robots)
+        return {key: self.posed(key) for key in self._index.reaching(grid.origin, grid.upper)
+                if wanted is None or key.robot in wanted}
+
+    def changed_since(self, position: int, grid: Grid, robots: Sequence[str] | None) -> dict[NodeKey, Posed | None]:
+        """Nodes (of all robots or of `robots`) added or moved from change-log `position` on: where
+        they stand now if they can reach `grid`, else None.
+
+        A tile update costs what changed since the last one, not what the map holds.
+        """
+        keys = self.log.since(position)
+        if robots is not None:
+            wanted = set(robots)
+            keys = [k for k in keys if k.robot in wanted]
+        if not keys:
+            return {}
+        return {key: self.posed(key) if reaches else None
+                for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper))}
+
+    def robot_rows(self) -> list[dict]:
+        return [{"robot": name, "nodes": len(r.nodes), "components": r.components,
+                 "bytes_received": r.bytes_received, "last_seen": r.last_seen, "pose_revision": r.revision}
+                for name, r in sorted(self.robots.items())]
+
+    def trajectory(self, robot: str) -> np.ndarray:
+        """World positions of the robot's sensor origins, in node order."""
+        r = self.robots.get(robot)
+        if r is None or not r.nodes:
+            return np.zeros((0, self.dim or 2))
+        return np.array([r.world_pose(n).apply(n.model.origin[None])[0] for _, n in sorted(r.nodes.items())])
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """World box of every node's reach, or None for an empty map."""
+        return self._index.extent() if self._index is not None else None

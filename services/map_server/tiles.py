@@ -1,0 +1,192 @@
+"""The tile cache of a fleet map: occupancy of the regions asked for, kept and brought up to date
+incrementally.
+
+A cached tile keeps its hit and miss counts and the posed nodes they hold. A new or moved node
+only marks the tiles it can reach stale; the next query of such a tile traces the difference:
+new nodes added, moved nodes subtracted at their old pose and added at the new one. Counts are
+sums of quantised weights (gmm_core.sampling), exact in float64, so an updated tile has the
+bytes a fresh reconstruction would have.
+
+A tile reads the node store's change log from the position it last accounted for; entries every
+cached tile has read are dropped. A tile that the log no longer covers (it was not asked for
+while the log outgrew its limit) is traced afresh on its next query.
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gmm_core import Grid
+from gmm_core.occupancy import map_estimate
+
+from .nodes import NodeKey, NodeStore, Posed
+from .tracers import TracerPool
+
+TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
+
+
+@dataclass
+class Tile:
+    """A cached query: counts of the nodes in `held`, and p(occupied) while nothing changed."""
+
+    grid: Grid
+    hits: np.ndarray  # float64, exact sums
+    misses: np.ndarray
+    seen: int  # change-log position up to which `held` accounts for every change
+    held: dict[NodeKey, Posed] = field(default_factory=dict)  # the nodes counted in, at the pose counted
+    changes: int = 0  # bumped when a new or moved node may reach the tile
+    prob: np.ndarray | None = None  # None until the first trace succeeded
+    prob_at: int = -1  # `changes` when `prob` was computed
+    lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
+
+    @property
+    def nbytes(self) -> int:
+        return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
+
+
+@contextmanager
+def _held(lock: threading.Lock):
+    """Release a lock that is already acquired when the block ends."""
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+class TileCache:
+    """LRU of tiles up to TILE_CACHE_BYTES. `lock` is the map's: it guards the tiles' bookkeeping
+    and the node store; tracing runs outside it (and outside the GIL), so ingest never waits behind
+    a tile, and different tiles trace in parallel. `mark_stale` is called under it."""
+
+    def __init__(self, lock: threading.RLock, nodes: NodeStore, tracers: TracerPool, prior: float):
+        self._lock = lock
+        self._nodes = nodes
+        self._tracers = tracers
+        self.prior = prior
+        self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
+        self._bytes = 0
+        self._boxes: tuple[list[Tile], np.ndarray, np.ndarray] | None = None  # while the tile set is unchanged
+        self._hits = 0
+        self._misses = 0
+        self._updates = 0
+        self._stale = 0  # answered with the previous tile while it was being updated
+
+    def values(self) -> list[Tile]:
+        """The cached tiles, least recently used first."""
+        with self._lock:
+            return list(self._tiles.values())
+
+    def mark_stale(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Mark stale every cached tile that one of the boxes (lo, hi) reaches."""
+        if self._boxes is None:
+            tiles = list(self._tiles.values())
+            d = self._nodes.dim or 2
+            self._boxes = (tiles, np.array([t.grid.origin for t in tiles]).reshape(-1, d),
+                           np.array([t.grid.upper for t in tiles]).reshape(-1, d))
+        tiles, tiles_lo, tiles_hi = self._boxes
+        reached = np.any(np.all(lo[:, None] <= tiles_hi[None], axis=2) & np.all(hi[:, None] >= tiles_lo[None], axis=2),
+                         axis=0)
+        for i in np.flatnonzero(reached):
+            tiles[i].changes += 1
+
+    def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
+        """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed.
+
+        While one request updates a tile, concurrent requests for it are answered with the tile as
+        it was before that update (when there is one) rather than queue behind it: a viewer polling
+        a busy map gets its tiles at once, one update late at most. A lone query always sees every
+        change applied before it.
+        """
+        key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
+        with self._lock:
+            self._nodes.check_dim(grid)
+            tile = self._tiles.get(key)
+            if tile is None:
+                # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
+                tile = Tile(grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape), self._nodes.log.end)
+                self._tiles[key] = tile
+                self._bytes += tile.nbytes
+                self._boxes = None
+                self._evict()
+            self._tiles.move_to_end(key)
+        if not tile.lock.acquire(blocking=False):
+            with self._lock:
+                previous = tile.prob
+                if previous is not None:
+                    self._stale += 1
+                    return previous
+            tile.lock.acquire()
+        with _held(tile.lock):
+            with self._lock:
+                if tile.prob_at == tile.changes:
+                    self._hits += 1
+                    return tile.prob
+                changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
+                afresh = first or tile.seen < self._nodes.log.start
+                if afresh:
+                    reaching = self._nodes.reaching(grid, robots)
+                else:
+                    changed = self._nodes.changed_since(tile.seen, grid, robots)
+            if afresh:
+                self._trace_afresh(tile, reaching)
+            else:
+                self._trace_changes(tile, changed)
+            prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
+            prob.setflags(write=False)
+            with self._lock:
+                # A change after the snapshot bumped `changes`: the next query updates again.
+                tile.prob, tile.prob_at, tile.seen = prob, changes, seen
+                if first:
+                    self._misses += 1
+                else:
+                    self._updates += 1
+                self._nodes.log.drop_before(min((t.seen for t in self._tiles.values()), default=seen))
+            return prob
+
+    def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed]) -> None:
+        """Counts of every node in `reaching`, replacing what the tile held."""
+        if reaching:
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, list(reaching.values()), [])
+        else:
+            tile.hits, tile.misses = np.zeros(tile.grid.array_shape), np.zeros(tile.grid.array_shape)
+        tile.held = dict(reaching)
+
+    def _trace_changes(self, tile: Tile, changed: dict[NodeKey, Posed | None]) -> None:
+        """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile).
+
+        Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
+        """
+        held = tile.held
+        moved = {k: held[k] for k, now in changed.items() if k in held and (now is None or now.stamp != held[k].stamp)}
+        new = [now for k, now in changed.items() if now is not None and (k not in held or held[k].stamp != now.stamp)]
+        if not (new or moved):
+            return
+        # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of
+        # the tile moved (a big correction).
+        if 2 * len(moved) <= len(held):
+            hits, misses = self._tracers.trace(tile.grid, new, list(moved.values()))  # moved: at their old pose
+            tile.hits += hits
+            tile.misses += misses
+        else:
+            kept = [posed for k, posed in held.items() if k not in moved]
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [])
+        for k in moved:
+            del held[k]
+        held.update((posed.key, posed) for posed in new)
+
+    def _evict(self) -> None:
+        """Drop least recently used tiles over TILE_CACHE_BYTES (always keeping the newest)."""
+        while self._bytes > TILE_CACHE_BYTES and len(self._tiles) > 1:
+            _, old = self._tiles.popitem(last=False)
+            self._bytes -= old.nbytes
+            self._boxes = None
+
+    def stats(self) -> dict:
+        with self._lock:
+            return {"hits": self._hits, "misses": self._misses, "updates": self._updates, "stale": self._stale,
+                    "tiles": len(self._tiles), "tile_bytes": self._bytes}
