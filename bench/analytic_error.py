@@ -5,7 +5,7 @@
 A component of N pi = COUNT points sits at distance d on the x-axis, seen from a sensor at the
 origin; cells (1 cm squares in 2D, 10 cm cubes in 3D) are centred on the beam at d + offset.
 Per (d, offset) the script compares p(occupied) (Eq. 11, the project's prior N_p) computed
-  - analytically: gmm_core.analytic.component_evidence (hits Eq. 10, misses Eq. 3-9), and for
+  - analytically: gmm_core.analytic.cells.component_evidence (hits Eq. 10, misses Eq. 3-9), and for
     2D also from Eq. 5 alone, as printed (r' = the cell's closest radial distance, hits removed);
   - by Monte Carlo: `--samples` points of the component, one ray from the origin to each, counted
     per cell as the ray tracer does (crosses the cell and ends outside: miss; inside: hit).
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,11 +31,14 @@ import numba
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from gmm_core.analytic import analytic_map_2d, component_evidence, eq5, eq5_geometry, occupancy_at_cells
-from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
-
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # runnable from a checkout; Eq. 5 as printed is in tests/support
+
+from gmm_core.analytic.cells import component_evidence, occupancy_at_cells  # noqa: E402
+from gmm_core.analytic.evidence_2d import analytic_map_2d  # noqa: E402
+from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate  # noqa: E402
+from support.paper import eq5_by_angles, eq5_geometry  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -81,7 +85,7 @@ def analytic(setup: Setup, cov: np.ndarray, d: float, paper_eq5: bool) -> tuple[
     origin = np.zeros(setup.dim)
     hits, misses = component_evidence(mean, cov, origin, centers, setup.cell)
     if paper_eq5:  # Eq. 5 counts the mass beyond the cell's near side: remove what ends inside
-        misses = np.maximum(eq5(*eq5_geometry(mean, cov, origin, centers, setup.cell)) - hits, 0.0)
+        misses = np.maximum(eq5_by_angles(*eq5_geometry(mean, cov, origin, centers, setup.cell)) - hits, 0.0)
     return hits, misses
 
 

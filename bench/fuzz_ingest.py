@@ -1,6 +1,6 @@
 """Fuzz the Zenoh ingest of a real `gmmap server` process with random and mutated messages.
 
-One Zenoh peer on 127.0.0.1 puts N messages (protocol.fuzz.keyed_message: seeds of every type,
+One Zenoh peer on 127.0.0.1 puts N messages (tests/support/fuzz.py keyed_message: seeds of every type,
 mutated 9 times in 10, on the keys they name, wrong robots and nodes now and then) as fast as
 the server takes them. The same validation runs here as an oracle, in the same order, to know
 how many must be rejected and why. Then:
@@ -33,17 +33,17 @@ import numpy as np
 import zenoh
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # the repository, and tests/support
 
 from protocol import scan_key  # noqa: E402
-from protocol.fuzz import keyed_message, seed_messages  # noqa: E402
 from services.map_server.check import check_store  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
 from services.map_server.ingest import Ingest  # noqa: E402
 from services.map_server.state import ServerState  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
+from support.fuzz import keyed_message, seed_messages  # noqa: E402
 
-FLEET = "fleet-a"  # the fleet of protocol.fuzz's seed messages
+FLEET = "fleet-a"  # the fleet of support.fuzz's seed messages
 
 
 def free_port() -> int:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable from a checkout
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # runnable from a checkout; tests/support
 
 from protocol import ProtocolError, decode, encode  # noqa: E402
 from protocol.codec import UNCHECKED  # noqa: E402
-from protocol.fuzz import mutate, seed_messages  # noqa: E402
+from support.fuzz import mutate, seed_messages  # noqa: E402
 
 
 def main() -> int:

@@ -34,7 +34,7 @@ class Grid:
         object.__setattr__(self, "resolution", float(self.resolution))
 
     @staticmethod
-    def from_bbox(lo, hi, resolution: float) -> "Grid":
+    def from_bbox(lo, hi, resolution: float) -> Grid:
         """The grid whose min corner is `lo` exactly, covering `hi` (rounded up to whole cells)."""
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)

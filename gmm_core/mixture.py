@@ -39,7 +39,7 @@ class Mixture:
         object.__setattr__(self, "support", int(self.support))
 
     @staticmethod
-    def empty(dim: int) -> "Mixture":
+    def empty(dim: int) -> Mixture:
         return Mixture(np.zeros(0), np.zeros((0, dim)), np.zeros((0, dim, dim)), 0)
 
     @property
@@ -50,7 +50,7 @@ class Mixture:
     def n_components(self) -> int:
         return self.weights.shape[0]
 
-    def transformed(self, pose: Pose) -> "Mixture":
+    def transformed(self, pose: Pose) -> Mixture:
         """The same mixture seen from the parent frame: mu' = R mu + t, Sigma' = R Sigma R^T (Eq. 2)."""
         R = pose.R
         means = self.means @ R.T + pose.t

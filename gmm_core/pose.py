@@ -32,16 +32,16 @@ class Pose:
         return self.t.shape[0]
 
     @staticmethod
-    def identity(dim: int) -> "Pose":
+    def identity(dim: int) -> Pose:
         return Pose(np.eye(dim), np.zeros(dim))
 
     @staticmethod
-    def from_xytheta(x: float, y: float, theta: float) -> "Pose":
+    def from_xytheta(x: float, y: float, theta: float) -> Pose:
         c, s = np.cos(theta), np.sin(theta)
         return Pose(np.array([[c, -s], [s, c]]), np.array([x, y]))
 
     @staticmethod
-    def from_quaternion(t, q_wxyz) -> "Pose":
+    def from_quaternion(t, q_wxyz) -> Pose:
         w, x, y, z = np.asarray(q_wxyz, dtype=np.float64) / np.linalg.norm(q_wxyz)
         R = np.array([
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -67,11 +67,11 @@ class Pose:
         q = np.array([w, x, y, z])
         return q / np.linalg.norm(q)
 
-    def compose(self, other: "Pose") -> "Pose":
+    def compose(self, other: Pose) -> Pose:
         """self ∘ other: first apply other, then self."""
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
-    def inverse(self) -> "Pose":
+    def inverse(self) -> Pose:
         return Pose(self.R.T, -self.R.T @ self.t)
 
     def apply(self, points: np.ndarray) -> np.ndarray:

@@ -127,7 +127,7 @@ def _axis(uo, ud, t0, t1, n):
     return first, last, up - np.int64(ud < 0.0), np.float64(first + up)
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True)
 def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, hic, stride_c):
     """cells[at:at + n]: the cells entered through n successive boundaries of one axis. At the
     k-th the index along that axis is flat + k step (flattened, in place), the other two axes'

@@ -47,7 +47,8 @@ def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.nda
     """
     hits = np.zeros(grid.array_shape)
     misses = np.zeros(grid.array_shape)
-    batch, n_rays = [], 0
+    batch: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    n_rays = 0
 
     def flush():
         nonlocal batch, n_rays

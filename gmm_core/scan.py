@@ -99,7 +99,9 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
     no_return = np.asarray(no_return, dtype=np.float64)
     dim = hits.shape[1]
     ends = no_return.reshape(-1, dim) * config.max_range
-    options = dict(reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)
-    occupied = fit_mixture(hits, config.n_components(hits), **options)
-    free = fit_mixture(ends, config.n_components(ends), **options)
-    return ScanModel(occupied, free, np.zeros(dim), config.max_range)
+
+    def fit(points: np.ndarray) -> Mixture:
+        return fit_mixture(points, config.n_components(points), reg_covar=config.reg_covar,
+                           max_iter=config.max_iter, tol=config.tol)
+
+    return ScanModel(fit(hits), fit(ends), np.zeros(dim), config.max_range)

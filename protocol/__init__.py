@@ -1,8 +1,17 @@
 """What crosses the wire between robots and map servers: messages, codec, key expressions."""
 from protocol.codec import ENCODINGS, MAX_BYTES, MAX_COMPONENTS, VERSION, decode, encode
 from protocol.errors import ProtocolError
-from protocol.keys import (ack_key, check_id, occupancy_key, occupancy_wildcard, parse_key, poses_key,
-                           poses_wildcard, scan_key, scan_wildcard)
+from protocol.keys import (
+    ack_key,
+    check_id,
+    occupancy_key,
+    occupancy_wildcard,
+    parse_key,
+    poses_key,
+    poses_wildcard,
+    scan_key,
+    scan_wildcard,
+)
 from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
 
 __all__ = [

@@ -7,6 +7,9 @@ decode() trusts nothing: whatever the bytes, it returns a valid message or raise
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import msgpack
 import numpy as np
 
@@ -277,10 +280,12 @@ def _decode_poses(f: Fields, max_components: int) -> PoseGraphUpdate:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
     dim, revision = f.int("d", "dimension", 2, 3), f.int("rev", "revision")
     nodes = _counts(f.array("nodes", "poses.nodes", "<u8"), "poses.nodes")
-    vectors = f.array("poses", "poses.poses", "<f8", len(nodes) * _pose_width(dim)).reshape(len(nodes), _pose_width(dim))
-    anchor = f.array("anchor", "anchor", "<f8", _pose_width(dim), nullable=True)
+    width = _pose_width(dim)
+    vectors = f.array("poses", "poses.poses", "<f8", len(nodes) * width).reshape(len(nodes), width)
+    anchor = f.array("anchor", "anchor", "<f8", width, nullable=True)
     poses = tuple((node, _pose_from_vector(vector, "poses.poses")) for node, vector in zip(nodes, vectors))
-    return PoseGraphUpdate(fleet, robot, revision, poses, None if anchor is None else _pose_from_vector(anchor, "anchor"))
+    anchor_pose = None if anchor is None else _pose_from_vector(anchor, "anchor")
+    return PoseGraphUpdate(fleet, robot, revision, poses, anchor_pose)
 
 
 def _counts(array: np.ndarray, field: str) -> list[int]:
@@ -344,7 +349,8 @@ def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
                     f.float("res", "resolution"), grid)
 
 
-_ENCODERS = {1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply,
-             6: _encode_rejection}
-_DECODERS = {1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply,
-             6: _decode_rejection}
+# An encoder takes the message class that TYPE_CODES gives its code.
+_ENCODERS: dict[int, Callable[[Any, str], dict]] = {
+    1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply, 6: _encode_rejection}
+_DECODERS: dict[int, Callable[[Fields, int], Message]] = {
+    1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply, 6: _decode_rejection}

@@ -195,7 +195,8 @@ class MapReply:
         origin = np.asarray(self.origin, dtype=np.float64)
         probabilities = np.asarray(self.probabilities, dtype=np.float32)
         if origin.shape not in ((2,), (3,)) or probabilities.ndim != origin.shape[0]:
-            raise ProtocolError("shape", f"origin {origin.shape} and grid {probabilities.shape} must share dimension 2 or 3")
+            raise ProtocolError("shape",
+                                f"origin {origin.shape} and grid {probabilities.shape} must share dimension 2 or 3")
         if probabilities.size == 0:
             raise ProtocolError("shape", f"every extent must be >= 1, got {probabilities.shape}")
         if not np.isfinite(origin).all():

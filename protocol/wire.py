@@ -5,6 +5,7 @@ states the type it wants. bool is rejected where an int is wanted (in Python it 
 """
 from __future__ import annotations
 
+import builtins
 import math
 
 import numpy as np
@@ -42,7 +43,7 @@ class Fields:
             raise ProtocolError(self.name(name), f"must be a finite number, got {value!r:.80}")
         return float(value)
 
-    def array(self, key: str, name: str, dtype: str, count: int | None = None, nullable: bool = False):
+    def array(self, key: str, name: str, dtype: str, count: builtins.int | None = None, nullable: bool = False):
         """A bin of little-endian numbers; floats must be finite. None for nil if nullable."""
         value = self.get(key, name)
         if value is None and nullable:

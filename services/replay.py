@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmm_core import FitConfig, Grid, ScanModel, fit_scan
-from gmm_core.analytic import analytic_map_2d
+from gmm_core.analytic.evidence_2d import analytic_map_2d
 from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import scan_seed

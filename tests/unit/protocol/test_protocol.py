@@ -16,7 +16,7 @@ from protocol import (Ack, MapQuery, MapReply, PoseGraphUpdate, ProtocolError, S
                       encode, occupancy_key, parse_key, poses_key, poses_wildcard, scan_key, scan_wildcard)
 from protocol import quantize as qz
 from protocol.codec import UNCHECKED
-from protocol.fuzz import mutate, random_rotations, scan_like_mixture, scan_message, seed_messages
+from support.fuzz import mutate, random_rotations, scan_like_mixture, scan_message, seed_messages
 
 pytestmark = pytest.mark.filterwarnings("error")  # a numpy warning means a value slipped through
 

@@ -1,4 +1,5 @@
-"""Scan-like random mixtures and mutated wire bytes, shared by tests and bench/protocol_fuzz.py.
+"""Scan-like random mixtures and mutated wire bytes, shared by tests, bench/protocol_fuzz.py and
+bench/fuzz_ingest.py.
 
 Nothing here runs in a service; it makes inputs that a weak radio or a hostile peer could send.
 """
@@ -136,7 +137,8 @@ def keyed_message(rng: np.random.Generator, seeds: list[bytes], fleet: str = "fl
 def mutate(rng: np.random.Generator, data: bytes) -> tuple[str, bytes]:
     """One random corruption of `data`: (name of the mutation, new bytes)."""
     buf = bytearray(data)
-    kind = ("flip", "truncate", "insert", "delete", "duplicate", "overwrite", "random", "structure")[int(rng.integers(8))]
+    kinds = ("flip", "truncate", "insert", "delete", "duplicate", "overwrite", "random", "structure")
+    kind = kinds[int(rng.integers(8))]
     if kind == "flip":
         for _ in range(int(rng.integers(1, 9))):
             buf[int(rng.integers(len(buf)))] ^= 1 << int(rng.integers(8))

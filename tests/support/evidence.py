@@ -1,0 +1,32 @@
+"""The references the analytic evidence (gmm_core.analytic) is held to, shared by its tests:
+Monte-Carlo counting of one cell as the ray tracer counts, and two small 2D scans of a corner."""
+import numpy as np
+
+from gmm_core import Mixture, Pose, ScanModel
+
+
+def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False):
+    """(hit, miss) fractions of one cell, from n rays origin -> sample (slab test per ray)."""
+    x = rng.multivariate_normal(mean, cov, n)
+    lo, hi = np.asarray(center) - size / 2, np.asarray(center) + size / 2
+    o = np.asarray(origin, dtype=float)
+    d = x - o
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - o) / d, (hi - o) / d
+    inside_o = (o >= lo) & (o <= hi)
+    t_enter = np.where(d != 0, np.minimum(ta, tb), np.where(inside_o, -np.inf, np.inf)).max(axis=1)
+    t_exit = np.where(d != 0, np.maximum(ta, tb), np.where(inside_o, np.inf, -np.inf)).min(axis=1)
+    crosses = (t_enter < t_exit) & (t_exit > 0) & (t_enter < 1)  # a length of the ray inside
+    inside = np.all((x >= lo) & (x <= hi), axis=1)
+    if max_range:
+        return 0.0, crosses.mean()
+    return inside.mean(), (crosses & ~inside).mean()
+
+
+def two_scans_2d():
+    """Two small scans of a corner, seen from two poses; every mixture has a free part too."""
+    wall = Mixture(np.array([0.5, 0.5]), np.array([[2.0, -0.3], [2.0, 0.4]]),
+                   np.array([np.diag([1e-4, 0.04]), np.diag([2e-4, 0.02])]), 40)
+    free = Mixture(np.ones(1), np.array([[0.5, 2.5]]), np.diag([0.05, 1e-4])[None], 10)
+    scan = ScanModel(wall, free, np.zeros(2), 3.0)
+    return [(scan, Pose.from_xytheta(0.0, 0.0, 0.0)), (scan, Pose.from_xytheta(0.3, -0.5, 0.2))]
