@@ -1,4 +1,4 @@
-"""The grid convention of DESIGN.md: origin = min corner, index [iy, ix] or [iz, iy, ix]."""
+"""The grid convention (docs/ARCHITECTURE.md, "Conventions"): origin = min corner, index [iy, ix] or [iz, iy, ix]."""
 from __future__ import annotations
 
 from dataclasses import dataclass
