@@ -124,14 +124,14 @@ def test_same_query_same_bytes(server):
     ("bbox=0,0,1,1&resolution=0.1&format=png&shade=colour", "shade", "classes"),
     ("resolution=0.1", "bbox", ""),
 ])
-def test_bad_requests_are_422_json(server, query, field, words):
-    start = time.perf_counter()
+def test_bad_requests_are_422_json(server, fleet_map, query, field, words):
+    before = fleet_map.cache_stats()
     status, headers, body = get(f"{server.url}/v1/occupancy?{query}")
     assert status == 422, body
     assert headers["Content-Type"] == "application/json"
     reply = json.loads(body)
     assert reply["field"] == field and words in reply["detail"], reply
-    assert time.perf_counter() - start < 1.0  # rejected before any work
+    assert fleet_map.cache_stats() == before  # rejected before any work: no tile, no samples
 
 
 def test_robot_selection(server, fleet_map):
@@ -197,14 +197,14 @@ def test_bad_points_by_post(server, payload, field):
     assert status == 422 and json.loads(body)["field"] == field, body
 
 
-def test_too_many_points_by_post(server):
+def test_too_many_points_by_post(server, fleet_map):
     status, body = post(f"{server.url}/v1/occupancy/points", {"points": [[0, 0]] * 10_001, "resolution": 0.1})
     assert status == 422 and "10,000" in json.loads(body)["detail"]
     scattered = np.random.default_rng(1).uniform(-10, 10, (1500, 2))  # each point its own cell lattice
-    start = time.perf_counter()
+    before = fleet_map.cache_stats()
     status, body = post(f"{server.url}/v1/occupancy/points", {"points": scattered.tolist(), "resolution": 0.1})
     assert status == 422 and "at most 1,000" in json.loads(body)["detail"]
-    assert time.perf_counter() - start < 1.0
+    assert fleet_map.cache_stats() == before  # refused before any work
     lattice = (np.round(np.random.default_rng(2).uniform(-10, 10, (10_000, 2)) / 0.1) + 0.5) * 0.1
     status, body = post(f"{server.url}/v1/occupancy/points", {"points": lattice.tolist(), "resolution": 0.1})
     assert status == 200 and len(json.loads(body)["probabilities"]) == 10_000
@@ -260,12 +260,10 @@ def test_queries_do_not_block_the_event_loop(server):
     slow = threading.Thread(target=get, args=(f"{server.url}/v1/occupancy?bbox=-30,-30,30,30&resolution=0.02",))
     slow.start()
     time.sleep(0.1)
-    start = time.perf_counter()
     assert get(f"{server.url}/healthz")[0] == 200
-    waited = time.perf_counter() - start
-    still_running = slow.is_alive()
+    still_running = slow.is_alive()  # a blocked event loop would answer only once the query is done
     slow.join()
-    assert still_running and waited < 0.3, (still_running, waited)
+    assert still_running
 
 
 # -- the web viewer in headless Chromium ------------------------------------------------------
