@@ -64,8 +64,21 @@ def stored_nodes(data: Path, robot: str) -> set[int]:
 
 
 def acked_nodes(outbox: Path) -> set[int]:
+    """Scans the server has acknowledged to the agent of `outbox` (which that agent must have opened)."""
+    return _scans_in(outbox, "SELECT id FROM acked WHERE kind = 'scan'")
+
+
+def written_nodes(outbox: Path) -> set[int]:
+    """Scans the agent of `outbox` has put in it (the first step of sending one): acknowledged or held.
+
+    One query, so one snapshot: a scan acknowledged between two reads would be in neither.
+    """
+    return _scans_in(outbox, "SELECT id FROM acked WHERE kind = 'scan' UNION SELECT id FROM outbox WHERE kind = 'scan'")
+
+
+def _scans_in(outbox: Path, query: str) -> set[int]:
     db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
     try:
-        return {n for (n,) in db.execute("SELECT id FROM acked WHERE kind = 'scan'")}
+        return {n for (n,) in db.execute(query)}
     finally:
         db.close()
