@@ -24,7 +24,6 @@ import json
 import os
 import random
 import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -36,16 +35,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from services.map_server.check import check_store  # noqa: E402
+from services.sim.processes import free_port  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RAW, CORRECTED = DATA / "radish" / "intel.clf.bz2", DATA / "carmen" / "intel-corrected.log.gz"
 FINISH_S = 180  # an agent must be done this long after the last disturbance
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def read_ids(db: Path, query: str, *args) -> set[int]:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -40,16 +39,11 @@ from services.map_server.check import check_store  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
 from services.map_server.ingest import Ingest  # noqa: E402
 from services.map_server.state import ServerState  # noqa: E402
+from services.sim.processes import free_port  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
 from support.fuzz import keyed_message, seed_messages  # noqa: E402
 
 FLEET = "fleet-a"  # the fleet of support.fuzz's seed messages
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def http(port: int, path: str) -> bytes:

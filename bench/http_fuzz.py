@@ -26,14 +26,12 @@ import urllib.request
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from services.sim.processes import free_port  # noqa: E402
+
 LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
 SCHEMATHESIS = Path(sys.executable).with_name("schemathesis")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cli(work: Path, name: str, *args: str) -> subprocess.Popen:

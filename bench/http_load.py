@@ -9,7 +9,6 @@ at random for a fixed time. Phase "cold" starts with an empty tile cache; phase 
 from __future__ import annotations
 
 import argparse
-import socket
 import subprocess
 import sys
 import tempfile
@@ -20,17 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from gmm_core import Grid
+from services.sim.processes import free_port
 from services.sim.run import TileClients, tile_urls
 
 ROOT = Path(__file__).resolve().parents[1]
 LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
 GMMAP = [sys.executable, "-m", "services.cli"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_http(url: str, timeout: float = 30.0) -> None:

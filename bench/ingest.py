@@ -10,7 +10,6 @@ this is the end-to-end rate of durable ingest. Usage:
 from __future__ import annotations
 
 import argparse
-import socket
 import subprocess
 import sys
 import tempfile
@@ -27,15 +26,10 @@ from gmm_core import Pose, fit_scan  # noqa: E402
 from protocol import (Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key,  # noqa: E402
                       scan_key)
 from services.datasets import read_scans  # noqa: E402
+from services.sim.processes import free_port  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
 
 LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def main() -> int:

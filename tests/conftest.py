@@ -11,7 +11,7 @@ import zenoh
 
 from services.zenoh_config import zenoh_config
 from support.paths import DATA
-from support.processes import Processes
+from support.processes import TestProcesses
 
 INTEGRATION = Path(__file__).parent / "integration"
 
@@ -43,11 +43,11 @@ def intel_scans(data_dir):
 @pytest.fixture
 def procs(tmp_path):
     """The test's `gmmap` subprocesses; every one still running is killed at the end."""
-    p = Processes(tmp_path)
+    p = TestProcesses(tmp_path)
     try:
         yield p
     finally:
-        p.kill_all()
+        p.close()
 
 
 @pytest.fixture

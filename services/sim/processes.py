@@ -27,6 +27,7 @@ class Processes:
     def __init__(self, workdir: Path):
         self.workdir = workdir
         self.running: dict[str, subprocess.Popen] = {}
+        self.log_start: dict[str, int] = {}  # where the running child's lines begin in its (appended) log
         self.cpu_s: dict[str, float] = {}  # user + system seconds of each child that was reaped
         path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
         self.env = dict(os.environ, PYTHONPATH=path, PYTHONUNBUFFERED="1")
@@ -38,7 +39,12 @@ class Processes:
         return self.log_path(name).read_text(errors="replace")[-chars:]
 
     def start(self, name: str, *args: str, module: str = "services.cli", env: dict | None = None) -> subprocess.Popen:
+        """A child under `name` (its log `name`.log, appended to); a name is reused only once its child has ended."""
+        previous = self.running.get(name)
+        if previous is not None and previous.poll() is None:  # replaced, it would outlive `close`
+            raise ValueError(f"a process named {name} is still running")
         with open(self.log_path(name), "ab") as log:
+            self.log_start[name] = log.seek(0, os.SEEK_END)
             # A session of its own: Ctrl-C reaches the parent only, which stops the children in order.
             proc = subprocess.Popen([sys.executable, "-m", module, *args], cwd=self.workdir,
                                     env={**self.env, **(env or {})},
@@ -46,15 +52,23 @@ class Processes:
         self.running[name] = proc
         return proc
 
-    def server(self, zenoh_port: int, http: str, data_dir: Path, fleet: str = "default") -> subprocess.Popen:
-        proc = self.start("server", "server", "--fleet", fleet, "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}",
-                          "--http", http, "--data-dir", str(data_dir))
-        deadline = time.monotonic() + 60
-        while SERVER_READY not in self.log_tail("server", 100_000):
+    def wait_ready(self, name: str, banner: str, timeout: float = 60.0) -> subprocess.Popen:
+        """The child once `banner` is in its log; OSError with the log's end if it exits or `timeout` s pass."""
+        proc = self.running[name]
+        deadline = time.monotonic() + timeout
+        # Only this child's lines: a restarted one must not be taken for ready on its predecessor's banner.
+        while banner.encode() not in self.log_path(name).read_bytes()[self.log_start[name]:]:
             if proc.poll() is not None or time.monotonic() > deadline:
-                raise OSError(f"the map server did not start:\n{self.log_tail('server')}")
+                raise OSError(f"{name} did not print {banner!r}:\n{self.log_tail(name)}")
             time.sleep(0.05)
         return proc
+
+    def server(self, zenoh_port: int | None, http: str, data_dir: Path, fleet: str = "default", *extra: str,
+               name: str = "server") -> subprocess.Popen:
+        """A map server listening on `zenoh_port` (None: no listener; `extra` options say how it connects)."""
+        listen = ("--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}") if zenoh_port is not None else ()
+        self.start(name, "server", "--fleet", fleet, *listen, "--http", http, "--data-dir", str(data_dir), *extra)
+        return self.wait_ready(name, SERVER_READY)
 
     def agent(self, robot: str, source: str, zenoh_port: int, rate: float, scans: int,
               fleet: str = "default", *extra: str) -> subprocess.Popen:

@@ -38,7 +38,7 @@ def security(tmp_path) -> Path:
 def agent(procs, robot: str, endpoint: str, data_dir: Path, config: str, *extra: str):  # noqa: F811
     return procs.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", endpoint,
                        "--zenoh-config", config, "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
-                       "--scans", SLICES[robot], "--outbox", str(procs.tmp / f"outbox-{robot}.db"),
+                       "--scans", SLICES[robot], "--outbox", str(procs.workdir / f"outbox-{robot}.db"),
                        "--timeout", "30", *extra)
 
 

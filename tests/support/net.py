@@ -2,16 +2,11 @@
 from __future__ import annotations
 
 import json
-import socket
 import time
 import urllib.error
 import urllib.request
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from services.sim.processes import free_port as free_port  # the repository's one, re-exported
 
 
 def wait_for(condition, timeout: float, what: str, interval: float = 0.05):

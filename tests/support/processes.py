@@ -1,65 +1,57 @@
-"""`gmmap` subprocesses of one test (server, agents, router), each logging to a file, and readers
-of the SQLite files they leave (the server's store, an agent's outbox)."""
+"""`gmmap` subprocesses of one test (server, agents, router) on the product's harness
+(services.sim.processes), and readers of the SQLite files they leave (the server's store, an
+agent's outbox)."""
 from __future__ import annotations
 
-import os
 import sqlite3
 import subprocess
-import sys
 from pathlib import Path
 
-from support.net import wait_for
-from support.paths import ROOT
+from services.sim.processes import Processes
 
 HALVES = {"a": "0:455", "b": "455:910"}  # the two robots of the Intel replays, by scan range
 
 
-class Processes:
-    """Subprocesses of one test, each logging to a file; all killed at the end."""
+class TestProcesses(Processes):
+    """The product's `Processes` in the tests' terms: helpers take the Popen that `start`
+    returned, `server` and `agent` take a name and the Intel halves, `finish` fails with the log."""
+
+    __test__ = False  # not a test class, despite its name
 
     def __init__(self, tmp_path: Path):
-        self.tmp = tmp_path
-        self.running: list[subprocess.Popen] = []
-        self.env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
+        super().__init__(tmp_path)
+        self.names: dict[subprocess.Popen, str] = {}
 
-    def start(self, name: str, *args: str) -> subprocess.Popen:
-        log = open(self.tmp / f"{name}.log", "ab")
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.tmp, env=self.env,
-                                stdout=log, stderr=subprocess.STDOUT)
-        proc.log_path = self.tmp / f"{name}.log"
-        self.running.append(proc)
+    def start(self, name: str, *args: str, **options) -> subprocess.Popen:
+        proc = super().start(name, *args, **options)
+        self.names[proc] = name
         return proc
 
-    def log(self, proc) -> str:
-        return proc.log_path.read_text(errors="replace")
+    def log(self, proc: subprocess.Popen) -> str:
+        """The whole log of the child's name: its predecessors of that name included."""
+        return self.log_path(self.names[proc]).read_text(errors="replace")
 
-    def ready(self, proc, banner: str) -> subprocess.Popen:
-        wait_for(lambda: banner in self.log(proc) or proc.poll() is not None, 30, banner)
-        assert proc.poll() is None, self.log(proc)
-        return proc
+    def ready(self, proc: subprocess.Popen, banner: str) -> subprocess.Popen:
+        return self.wait_ready(self.names[proc], banner)
 
     def server(self, name: str, data: Path, zport: int, hport: int, *zenoh: str) -> subprocess.Popen:
-        zenoh = zenoh or ("--zenoh-listen", f"tcp/127.0.0.1:{zport}")
-        proc = self.start(name, "server", *zenoh, "--http", f"127.0.0.1:{hport}", "--data-dir", str(data))
-        return self.ready(proc, "gmmap server ready")
+        """A ready map server on HTTP port `hport`, listening on `zport` unless `zenoh` options say otherwise."""
+        return super().server(None if zenoh else zport, f"127.0.0.1:{hport}", data, "default", *zenoh, name=name)
 
     def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
+        """Robot a or b replaying its half of the Intel log (raw scans, corrected poses) to `zport`."""
         return self.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
                           "--source", f"carmen:{data_dir / 'radish' / 'intel.clf.bz2'}",
                           "--corrections", str(data_dir / "carmen" / "intel-corrected.log.gz"),
-                          "--scans", HALVES[robot], "--outbox", str(self.tmp / f"outbox-{robot}.db"), *extra)
+                          "--scans", HALVES[robot], "--outbox", str(self.workdir / f"outbox-{robot}.db"), *extra)
 
-    def finish(self, proc, timeout: float) -> int:
+    def finish(self, proc: subprocess.Popen, timeout: float) -> int:
+        """The child's exit code; an AssertionError with its log if it still runs after `timeout` s."""
         try:
             return proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            raise AssertionError(f"{proc.args[3:5]} still running after {timeout} s:\n{self.log(proc)[-3000:]}")
-
-    def kill_all(self) -> None:
-        for proc in self.running:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+            tail = self.log(proc)[-3000:]
+            raise AssertionError(f"{self.names[proc]} still running after {timeout} s:\n{tail}") from None
 
 
 def store_db(data: Path) -> sqlite3.Connection:
@@ -72,8 +64,21 @@ def stored_nodes(data: Path, robot: str) -> set[int]:
 
 
 def acked_nodes(outbox: Path) -> set[int]:
+    """Scans the server has acknowledged to the agent of `outbox` (which that agent must have opened)."""
+    return _scans_in(outbox, "SELECT id FROM acked WHERE kind = 'scan'")
+
+
+def written_nodes(outbox: Path) -> set[int]:
+    """Scans the agent of `outbox` has put in it (the first step of sending one): acknowledged or held.
+
+    One query, so one snapshot: a scan acknowledged between two reads would be in neither.
+    """
+    return _scans_in(outbox, "SELECT id FROM acked WHERE kind = 'scan' UNION SELECT id FROM outbox WHERE kind = 'scan'")
+
+
+def _scans_in(outbox: Path, query: str) -> set[int]:
     db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
     try:
-        return {n for (n,) in db.execute("SELECT id FROM acked WHERE kind = 'scan'")}
+        return {n for (n,) in db.execute(query)}
     finally:
         db.close()
