@@ -168,7 +168,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
     try:
         zport, hport = free_port(), free_port()
         base = f"http://127.0.0.1:{hport}"
-        procs.server(zport, f"127.0.0.1:{hport}", workdir / "data", o.fleet)
+        procs.server(zport, f"127.0.0.1:{hport}", workdir / "data", o.fleet, "--config", str(settings))
         tap = WireTap(o.fleet, zport)
         record = RunRecord(config, fleet, grid, correction_interval(o.rate), time.time())
         # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
