@@ -6,7 +6,6 @@ import json
 import socket
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -34,6 +33,7 @@ def server(intel_scans):
     for s in intel_scans[:200:4]:  # 50 scans: a map small enough that the fuzzer's queries stay cheap
         fleet.add_scan(ScanMessage("test", "r1", s.index, s.stamp, fit_scan(s.hits, s.no_return), s.pose), 1000)
     with Server(create_app(ServerState("test", fleet))) as running:
+        running.fleet_map = fleet
         yield running
 
 
@@ -44,11 +44,9 @@ def test_schemathesis_finds_no_server_error_and_no_schema_violation(server, tmp_
     command = [str(SCHEMATHESIS), "run", f"{server.url}/openapi.json", "--checks", "all",
                "--exclude-checks", "positive_data_acceptance", "--max-examples", "25", "--seed", "7",
                "--request-timeout", "20", "--workers", "1"]
-    start = time.perf_counter()
     run = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=170)
-    elapsed = time.perf_counter() - start
     assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
-    assert "passed" in run.stdout and elapsed < 120, elapsed
+    assert "passed" in run.stdout
 
 
 def test_errors_are_json_with_the_documented_schema(server):
@@ -68,16 +66,15 @@ def test_errors_are_json_with_the_documented_schema(server):
     assert status == 422 and json.loads(body)["field"] == "points.0.0"  # no bool taken for a number
 
 
-def test_oversized_requests_are_refused_in_milliseconds(server):
+def test_oversized_requests_are_refused_before_any_work(server):
     queries = ["bbox=-1e6,-1e6,1e6,1e6&resolution=0.005",  # 1.6e17 cells
                "bbox=-1e300,-1e300,1e300,1e300&resolution=0.005",
                "bbox=0,0,429496729.6,429496729.6&resolution=0.1"]  # 2^64 cells: int64 would wrap to 0
     for query in queries:
-        start = time.perf_counter()
+        before = server.fleet_map.cache_stats()
         status, _, body = get(f"{server.url}/v1/occupancy?{query}")
-        elapsed = time.perf_counter() - start
         assert status == 422 and json.loads(body)["field"] == "bbox", body
-        assert elapsed < 0.05, f"{query}: {elapsed * 1000:.1f} ms"
+        assert server.fleet_map.cache_stats() == before, query  # no tile, no samples: counted before any work
 
 
 def test_cors_is_off_by_default(server):
@@ -115,11 +112,10 @@ def test_request_bodies_over_one_mib_are_refused_with_413(server):
     port = int(server.url.rsplit(":", 1)[1])
     post = b"POST /v1/occupancy/points HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
     # Declared too long: refused on the headers, before a byte of the body is read. (The test sends
-    # no body: unread bytes at the close would make the kernel reset the connection.)
-    start = time.perf_counter()
+    # no body: unread bytes at the close would make the kernel reset the connection. A server that
+    # waited for the body would answer nothing before the socket's timeout.)
     reply = raw_http(port, post + b"Content-Length: 2000000\r\n\r\n")
     assert reply.startswith(b"HTTP/1.1 413") and b"1,048,576" in reply, reply[:300]
-    assert time.perf_counter() - start < 0.5
     # Chunked, without a length: counted as it arrives, refused once past 1 MiB (17 chunks of 64 KiB).
     reply = raw_http(port, post + b"Transfer-Encoding: chunked\r\n\r\n", [b"[" * 65536] * 17)
     assert reply.startswith(b"HTTP/1.1 413") and b'"detail"' in reply, reply[:300]
@@ -128,19 +124,18 @@ def test_request_bodies_over_one_mib_are_refused_with_413(server):
     assert status == 200
 
 
-def test_server_limits_request_heads_and_zenoh_map_queries(procs, tmp_path):  # noqa: F811
+def test_server_limits_request_heads_and_zenoh_map_queries(procs, tmp_path):
     """The real `gmmap server`: heads over 1 MiB get uvicorn's 400; huge Zenoh queries a named error."""
     zport, hport = free_port(), free_port()
     procs.server("server", tmp_path / "data", zport, hport)
     long_query = b"GET /v1/occupancy/points?resolution=0.1&xy=" + b"1," * (1 << 20) + b"1 HTTP/1.1\r\nHost: x\r\n\r\n"
-    start = time.perf_counter()
     with socket.create_connection(("127.0.0.1", hport), timeout=20) as s:
         try:
             s.sendall(long_query)
         except (BrokenPipeError, ConnectionResetError):
             pass
         reply = s.recv(1024)
-    assert reply.startswith(b"HTTP/1.1 400") and time.perf_counter() - start < 2, reply
+    assert reply.startswith(b"HTTP/1.1 400"), reply
     # 10,000 points (the API's maximum) fit under the limit.
     points = ",".join(["12.3456,-7.891"] * 10_000)
     status, _, body = get(f"http://127.0.0.1:{hport}/v1/occupancy/points?resolution=0.1&xy={points}")
@@ -149,9 +144,7 @@ def test_server_limits_request_heads_and_zenoh_map_queries(procs, tmp_path):  # 
     session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
     try:
         for lo, hi in (([0, 0], [2**32 * 0.1] * 2), ([-1e300] * 3, [1e300] * 3)):
-            start = time.perf_counter()
-            with pytest.raises(MapQueryError, match="bbox: .* cells requested"):
+            with pytest.raises(MapQueryError, match="bbox: .* cells requested"):  # counted, not built
                 query_bytes(session, "default", encode(MapQuery("default", np.array(lo), np.array(hi), 0.1)))
-            assert time.perf_counter() - start < 1.0
     finally:
         session.close()

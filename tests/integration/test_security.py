@@ -155,12 +155,10 @@ def test_a_robot_over_its_quota_is_told_why_and_stops(procs, data_dir, tmp_path)
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     quota = 0.01  # MiB: room for about 18 Intel scans of 0.57 kB
     procs.server("server", data, zport, hport, "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--robot-quota-mb", str(quota))
-    start = time.monotonic()
     robot = procs.start("agent-a", "agent", "--robot", "a", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
                         "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}", "--scans", "0:100",
                         "--outbox", str(tmp_path / "outbox-a.db"), "--timeout", "30")
-    assert procs.finish(robot, 60) == 3, procs.log(robot)
-    assert time.monotonic() - start < 30  # told, not left resending until its timeout
+    assert procs.finish(robot, 60) == 3, procs.log(robot)  # told (3), not left resending until its timeout (1)
     summary = procs.log(robot).strip().splitlines()[-1]
     assert "refused" in summary and "quota" in summary and "--robot-quota-mb" in summary, summary
 

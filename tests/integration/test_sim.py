@@ -113,7 +113,6 @@ def test_slabs_cover_the_grid_exactly():
 # --- processes -----------------------------------------------------------------------------------
 
 def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
-    start = time.monotonic()
     out = tmp_path / "report"
     result = subprocess.run(GMMAP + ["sim", "--robots", "2", "--world", "office", "--duration", "6", "--rate", "5",
                                      "--http-clients", "1", "--report", str(out)],
@@ -136,7 +135,6 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
         assert f"]({png})" in markdown
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "auroc" in result.stdout
-    assert time.monotonic() - start < 40
 
 
 def test_demo_serves_the_viewer_and_stops_after_its_duration(tmp_path):
