@@ -18,6 +18,7 @@ and prints the peak errors for several N pi, the cost per evaluated (cell, compo
 with ../shared/data present the Intel map at 10 cm: time and AUROC of the analytic and the
 Monte-Carlo maps, the cost of local evaluation and its break-even against the whole MC map.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -97,7 +98,9 @@ def error_maps(setup: Setup, cov: np.ndarray, samples: int, methods, counts) -> 
     errors = {(n, c): np.zeros((len(setup.distances), len(setup.offsets))) for n in names for c in counts}
     for i, d in enumerate(setup.distances):
         reference = monte_carlo(setup, cov, d, samples, rng)
-        estimates = [analytic(setup, cov, d, paper) for _, paper in methods] + [monte_carlo(setup, cov, d, samples, rng)]
+        estimates = [analytic(setup, cov, d, paper) for _, paper in methods] + [
+            monte_carlo(setup, cov, d, samples, rng)
+        ]
         for c in counts:
             p_mc = map_estimate(c * reference[0], c * reference[1], DEFAULT_PRIOR).astype(np.float64)
             for name, (hits, misses) in zip(names, estimates):
@@ -154,6 +157,7 @@ def figure(panels: list[Image.Image], vmax: float, caption: list[str], font, col
 
 # --- the map-scale numbers --------------------------------------------------------------------
 
+
 def intel_numbers() -> None:
     """The paper's 2D data at 10 cm: map time and AUROC (against the counting grid of the raw
     beams) of the analytic map and of the Monte-Carlo one, and the local evaluation cost."""
@@ -181,10 +185,14 @@ def intel_numbers() -> None:
     mc_counts = reconstruct(grid, seeded, samples_per_cell=4.0)
     mc_s = time.perf_counter() - start
     n_comp = sum(m.n_components for m in models)
-    print(f"Intel, 10 cm, {grid.shape[0]}x{grid.shape[1]} cells, {len(scans)} scans, {n_comp} components, "
-          f"{numba.get_num_threads()} threads:")
-    for name, counts, seconds in (("analytic_map_2d", analytic_counts, analytic_s),
-                                  ("Monte Carlo (reconstruct, 4 samples/cell)", mc_counts, mc_s)):
+    print(
+        f"Intel, 10 cm, {grid.shape[0]}x{grid.shape[1]} cells, {len(scans)} scans, {n_comp} components, "
+        f"{numba.get_num_threads()} threads:"
+    )
+    for name, counts, seconds in (
+        ("analytic_map_2d", analytic_counts, analytic_s),
+        ("Monte Carlo (reconstruct, 4 samples/cell)", mc_counts, mc_s),
+    ):
         auroc = grid_auroc(map_estimate(*counts, DEFAULT_PRIOR), *truth)
         print(f"  {name}: {seconds:.2f} s, AUROC {auroc:.4f}")
     rng = np.random.default_rng(0)
@@ -193,8 +201,10 @@ def intel_numbers() -> None:
     start = time.perf_counter()
     occupancy_at_cells(with_poses, cells, 0.1)
     per_cell = (time.perf_counter() - start) / len(cells)
-    print(f"  occupancy_at_cells, random cells, every component tested: {1e6 * per_cell:.0f} us per cell; "
-          f"break-even with the Monte-Carlo map: {mc_s / per_cell:.0f} cells")
+    print(
+        f"  occupancy_at_cells, random cells, every component tested: {1e6 * per_cell:.0f} us per cell; "
+        f"break-even with the Monte-Carlo map: {mc_s / per_cell:.0f} cells"
+    )
 
 
 def main() -> None:
@@ -210,8 +220,7 @@ def main() -> None:
         3: Setup(3, 0.10, (0.02, 0.15, 0.15), 20.0, np.linspace(1.0, 10.0, rows), np.linspace(-0.3, 0.3, cols)),
     }
     font = ImageFont.load_default(size=14)
-    print(f"Monte Carlo: {args.samples} samples per distance; prior N_p = {DEFAULT_PRIOR}; "
-          f"{os.cpu_count()} cores")
+    print(f"Monte Carlo: {args.samples} samples per distance; prior N_p = {DEFAULT_PRIOR}; {os.cpu_count()} cores")
     for dim, setup in setups.items():
         counts = sorted({setup.count, 3.0, 30.0, 300.0})
         methods = [("analytic", False)] + ([("Eq. 5 alone", True)] if dim == 2 else [])
@@ -222,11 +231,15 @@ def main() -> None:
                 peaks = ", ".join(f"N pi = {c:g}: {errors[name, c].max():.4f}" for c in counts)
                 print(f"{dim}D {100 * setup.cell:g} cm cell, {geometry:8s} {name:12s} peak |p error| {peaks}")
             noise = errors["MC noise", setup.count].max()
-            panels += [panel(errors[name, setup.count], noise, setup, f"{dim}D {geometry}, {name}", 0.05, font)
-                       for name, _ in methods]
-        caption = ["|p - p_MC| for one component seen from the origin; rows: mean distance d",
-                   f"{args.samples:g} MC samples, N pi = {setup.count:g}, N_p = {DEFAULT_PRIOR}, "
-                   f"cell {100 * setup.cell:g} cm, sigma = {setup.sigmas} m"]
+            panels += [
+                panel(errors[name, setup.count], noise, setup, f"{dim}D {geometry}, {name}", 0.05, font)
+                for name, _ in methods
+            ]
+        caption = [
+            "|p - p_MC| for one component seen from the origin; rows: mean distance d",
+            f"{args.samples:g} MC samples, N pi = {setup.count:g}, N_p = {DEFAULT_PRIOR}, "
+            f"cell {100 * setup.cell:g} cm, sigma = {setup.sigmas} m",
+        ]
         path = args.out / f"analytic_error_{dim}d.png"
         figure(panels, 0.05, caption, font, len(methods)).save(path)
         print(f"  wrote {path}")

@@ -6,6 +6,7 @@ defaults use, and the time of the whole replay at 5 cm.
 
     .venv/bin/python bench/auroc_intel.py [--quick]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,8 +43,10 @@ def main() -> None:
     resolutions = [0.1, 0.05] if args.quick else [0.1, 0.05, 0.01]
     removed = [0.0, 0.5, 0.7, 0.9]
     raw_bytes = 4.0 * np.mean([len(s.hits) + len(s.no_return) for s in scans])
-    print(f"machine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
-          f"date {time.strftime('%Y-%m-%d')}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
+        f"date {time.strftime('%Y-%m-%d')}"
+    )
     rows = []
     for res in resolutions:
         grid = Grid.from_bbox(lo, hi, res)
@@ -54,10 +57,22 @@ def main() -> None:
             gmm = replay(sub, resolution=res, bbox=bbox, method="mc")
             t_gmm = time.perf_counter() - t0
             raw = replay(sub, resolution=res, bbox=bbox, method="raw")
-            rows.append((res, frac, grid_auroc(gmm.prob, *truth), grid_auroc(raw.prob, *truth),
-                         wire_bytes(gmm.components, gmm.scans), raw_bytes * (1 - frac), t_gmm))
+            rows.append(
+                (
+                    res,
+                    frac,
+                    grid_auroc(gmm.prob, *truth),
+                    grid_auroc(raw.prob, *truth),
+                    wire_bytes(gmm.components, gmm.scans),
+                    raw_bytes * (1 - frac),
+                    t_gmm,
+                )
+            )
         del truth
-    print("\n| resolution | beams removed | AUROC GMM | AUROC raw grid | GMM bytes/scan (f32) | raw bytes/scan | GMM replay s |")
+    print(
+        "\n| resolution | beams removed | AUROC GMM | AUROC raw grid | GMM bytes/scan (f32) | raw bytes/scan "
+        "| GMM replay s |"
+    )
     print("|---|---|---|---|---|---|---|")
     for res, frac, a_gmm, a_raw, b_gmm, b_raw, t in rows:
         print(f"| {res} m | {frac:.0%} | {a_gmm:.4f} | {a_raw:.4f} | {b_gmm:.0f} | {b_raw:.0f} | {t:.1f} |")
@@ -70,8 +85,10 @@ def main() -> None:
     for ppc in (1.5, 3.0, 9.0):
         m = replay(sub, resolution=0.05, bbox=bbox, config=FitConfig(points_per_component=ppc))
         for prior in (0.2, 1.0):
-            print(f"| {ppc} points/component, N_p = {prior} | "
-                  f"{grid_auroc(map_estimate(m.hits, m.misses, prior), *truth):.4f} |")
+            print(
+                f"| {ppc} points/component, N_p = {prior} | "
+                f"{grid_auroc(map_estimate(m.hits, m.misses, prior), *truth):.4f} |"
+            )
     for spc in (1.0, 4.0):
         m = replay(sub, resolution=0.05, bbox=bbox, reconstruction=ReconstructionConfig(samples_per_cell=spc))
         print(f"| {spc} samples per cell | {grid_auroc(m.prob, *truth):.4f} |")

@@ -9,6 +9,7 @@ moved), and cached.
 
     .venv/bin/python bench/correction.py
 """
+
 from __future__ import annotations
 
 import time
@@ -37,8 +38,9 @@ def main() -> None:
     rows = []
     for revision in range(1, 6):
         shift = 0.01 * revision
-        update = PoseGraphUpdate("bench", "r", revision, tuple(
-            (s.index, Pose(s.pose.R, s.pose.t + [shift, 0.0])) for s in scans))
+        update = PoseGraphUpdate(
+            "bench", "r", revision, tuple((s.index, Pose(s.pose.R, s.pose.t + [shift, 0.0])) for s in scans)
+        )
         raw = encode(update)
         t0 = time.perf_counter()
         decoded = decode(raw)
@@ -55,8 +57,9 @@ def main() -> None:
     med = 1000 * np.median(rows, axis=0)
     print(f"the first 512x512 tile at 5 cm of a fresh map (samples drawn): {1000 * first:.1f} ms")
     print(f"update of {len(scans)} nodes, {len(raw)} bytes; medians over 5 corrections (ms):")
-    print("| decode | apply | correction visible | 512x512 tile at 5 cm: cold | cached, after the correction "
-          "| cached |")
+    print(
+        "| decode | apply | correction visible | 512x512 tile at 5 cm: cold | cached, after the correction | cached |"
+    )
     print("|---|---|---|---|---|---|")
     print("| " + " | ".join(f"{v:.1f}" for v in med) + " |")
 

@@ -17,6 +17,7 @@ Prints one line per trial and a summary (JSON with --json); exits 1 when a check
     .venv/bin/python bench/crash_trials.py [--server 10] [--router 3] [--agent 3] [--scans 300]
         [--rate 100] [--seed 0] [--json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -69,8 +70,13 @@ class Trial:
         log = self.work / f"{name}.log"  # a restart appends to the same log
         offset = log.stat().st_size if log.exists() else 0
         with log.open("ab") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=self.work, env=self.env,
-                                    stdout=out, stderr=subprocess.STDOUT)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *args],
+                cwd=self.work,
+                env=self.env,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
         self.procs.append(proc)
         deadline = time.monotonic() + 60
         while banner and banner.encode() not in log.read_bytes()[offset:]:
@@ -80,15 +86,41 @@ class Trial:
         return proc
 
     def server(self, zenoh_args: list[str], hport: int) -> subprocess.Popen:
-        return self.start("server", "server", *zenoh_args, "--http", f"127.0.0.1:{hport}",
-                          "--data-dir", str(self.data), banner="gmmap server ready")
+        return self.start(
+            "server",
+            "server",
+            *zenoh_args,
+            "--http",
+            f"127.0.0.1:{hport}",
+            "--data-dir",
+            str(self.data),
+            banner="gmmap server ready",
+        )
 
     def agent(self, robot: str, port: int) -> subprocess.Popen:
         a, b = self.slices[robot]
-        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", f"tcp/127.0.0.1:{port}",
-                          "--source", f"carmen:{RAW}", "--corrections", str(CORRECTED), "--scans", f"{a}:{b}",
-                          "--rate", str(self.rate), "--resend", "0.5", "--timeout", str(FINISH_S),
-                          "--outbox", str(self.outbox(robot)))
+        return self.start(
+            f"agent-{robot}",
+            "agent",
+            "--robot",
+            robot,
+            "--zenoh-connect",
+            f"tcp/127.0.0.1:{port}",
+            "--source",
+            f"carmen:{RAW}",
+            "--corrections",
+            str(CORRECTED),
+            "--scans",
+            f"{a}:{b}",
+            "--rate",
+            str(self.rate),
+            "--resend",
+            "0.5",
+            "--timeout",
+            str(FINISH_S),
+            "--outbox",
+            str(self.outbox(robot)),
+        )
 
     def outbox(self, robot: str) -> Path:
         return self.work / f"outbox-{robot}.db"
@@ -145,20 +177,39 @@ def server_trial(trial: Trial, rng: random.Random) -> dict:
     target = rng.randint(1, int(total * 0.9))
     trial.wait_stored(target)
     kill9(server)
-    at_kill = {"stored": len(trial.stored()), "acked": sum(len(trial.acked(r)) for r in trial.slices),
-               "lost": trial.lost()}
+    at_kill = {
+        "stored": len(trial.stored()),
+        "acked": sum(len(trial.acked(r)) for r in trial.slices),
+        "lost": trial.lost(),
+    }
     dead = check_store(trial.data)
     restarted = time.monotonic()
     trial.server(listen, hport)
     ready = time.monotonic() - restarted
     codes = trial.finish(agents)
     final = check_store(trial.data)
-    return {"kill_at_stored": target, **at_kill, "integrity_at_kill": dead.integrity, "bad_rows_at_kill": len(dead.bad),
-            "restart_s": round(ready, 2), "finish_s": round(time.monotonic() - restarted, 1), "exit_codes": codes,
-            "complete": trial.complete(), "lost_final": trial.lost(), "integrity": final.integrity,
-            "bad_rows": len(final.bad), "scans": final.scans,
-            "ok": (at_kill["lost"] == 0 and dead.ok and final.ok and trial.complete() and trial.lost() == 0
-                   and all(c == 0 for c in codes.values()))}
+    return {
+        "kill_at_stored": target,
+        **at_kill,
+        "integrity_at_kill": dead.integrity,
+        "bad_rows_at_kill": len(dead.bad),
+        "restart_s": round(ready, 2),
+        "finish_s": round(time.monotonic() - restarted, 1),
+        "exit_codes": codes,
+        "complete": trial.complete(),
+        "lost_final": trial.lost(),
+        "integrity": final.integrity,
+        "bad_rows": len(final.bad),
+        "scans": final.scans,
+        "ok": (
+            at_kill["lost"] == 0
+            and dead.ok
+            and final.ok
+            and trial.complete()
+            and trial.lost() == 0
+            and all(c == 0 for c in codes.values())
+        ),
+    }
 
 
 def router_trial(trial: Trial, rng: random.Random) -> dict:
@@ -180,11 +231,19 @@ def router_trial(trial: Trial, rng: random.Random) -> dict:
     resumed = time.monotonic() - restarted
     codes = trial.finish(agents)
     final = check_store(trial.data)
-    return {"kill_at_stored": at_kill, "router_down_s": round(pause, 2), "stored_while_down": during - at_kill,
-            "first_scan_after_restart_s": round(resumed, 2), "finish_s": round(time.monotonic() - restarted, 1),
-            "exit_codes": codes, "complete": trial.complete(), "lost": trial.lost(), "integrity": final.integrity,
-            "bad_rows": len(final.bad),
-            "ok": final.ok and trial.complete() and trial.lost() == 0 and all(c == 0 for c in codes.values())}
+    return {
+        "kill_at_stored": at_kill,
+        "router_down_s": round(pause, 2),
+        "stored_while_down": during - at_kill,
+        "first_scan_after_restart_s": round(resumed, 2),
+        "finish_s": round(time.monotonic() - restarted, 1),
+        "exit_codes": codes,
+        "complete": trial.complete(),
+        "lost": trial.lost(),
+        "integrity": final.integrity,
+        "bad_rows": len(final.bad),
+        "ok": final.ok and trial.complete() and trial.lost() == 0 and all(c == 0 for c in codes.values()),
+    }
 
 
 def agent_trial(trial: Trial, rng: random.Random) -> dict:
@@ -204,11 +263,19 @@ def agent_trial(trial: Trial, rng: random.Random) -> dict:
     codes = trial.finish(agents)
     final = check_store(trial.data)
     log = trial.work.joinpath("agent-a.log").read_text(errors="replace")
-    return {"kill_at_stored_a": target, "held_in_outbox": len(held), "skipped_on_restart": skipped,
-            "finish_s": round(time.monotonic() - restarted, 1), "exit_codes": codes, "complete": trial.complete(),
-            "lost": trial.lost(), "integrity": final.integrity, "bad_rows": len(final.bad),
-            "agent_log_tracebacks": log.count("Traceback"),
-            "ok": final.ok and trial.complete() and trial.lost() == 0 and all(c == 0 for c in codes.values())}
+    return {
+        "kill_at_stored_a": target,
+        "held_in_outbox": len(held),
+        "skipped_on_restart": skipped,
+        "finish_s": round(time.monotonic() - restarted, 1),
+        "exit_codes": codes,
+        "complete": trial.complete(),
+        "lost": trial.lost(),
+        "integrity": final.integrity,
+        "bad_rows": len(final.bad),
+        "agent_log_tracebacks": log.count("Traceback"),
+        "ok": final.ok and trial.complete() and trial.lost() == 0 and all(c == 0 for c in codes.values()),
+    }
 
 
 def main() -> int:
@@ -226,8 +293,11 @@ def main() -> int:
         return 2
     rng = random.Random(args.seed)
     results = []
-    plan = [("server", server_trial)] * args.server + [("router", router_trial)] * args.router + \
-           [("agent", agent_trial)] * args.agent
+    plan = (
+        [("server", server_trial)] * args.server
+        + [("router", router_trial)] * args.router
+        + [("agent", agent_trial)] * args.agent
+    )
     for number, (kind, run) in enumerate(plan, 1):
         with tempfile.TemporaryDirectory(prefix=f"gmmap-{kind}-") as tmp:
             trial = Trial(Path(tmp), args.scans, args.rate)
@@ -242,9 +312,13 @@ def main() -> int:
         results.append(result)
         if not args.json:
             print(json.dumps(result), flush=True)
-    summary = {kind: {"trials": sum(r["kind"] == kind for r in results),
-                      "ok": sum(r["kind"] == kind and r["ok"] for r in results)}
-               for kind in ("server", "router", "agent")}
+    summary = {
+        kind: {
+            "trials": sum(r["kind"] == kind for r in results),
+            "ok": sum(r["kind"] == kind and r["ok"] for r in results),
+        }
+        for kind in ("server", "router", "agent")
+    }
     if args.json:
         print(json.dumps({"summary": summary, "trials": results}))
     else:

@@ -6,6 +6,7 @@ OctoMap's binary `.bt` of the same scan at 0.1 m (when octomap-python is install
 
     .venv/bin/python bench/encoding.py
 """
+
 from __future__ import annotations
 
 import tempfile
@@ -33,8 +34,9 @@ def auroc_by_encoding(scans, models, resolution, bbox=None):
     out = {}
     for encoding in ("none", "f32", "q"):
         wired = [through_wire(m, encoding) for m in models]
-        h, m = reconstruct(grid, [(w, s.pose, scan_seed(0, s.index)) for w, s in zip(wired, scans)],
-                           samples_per_cell=4.0)
+        h, m = reconstruct(
+            grid, [(w, s.pose, scan_seed(0, s.index)) for w, s in zip(wired, scans)], samples_per_cell=4.0
+        )
         out[encoding] = grid_auroc(map_estimate(h, m), *truth)
     return out
 
@@ -46,8 +48,9 @@ def octomap_bt_bytes(scan, resolution=0.1) -> int | None:
         return None
     tree = octomap.OcTree(resolution)
     points = scan.pose.apply(scan.hits)
-    tree.insertPointCloud(np.ascontiguousarray(points, dtype=np.float64),
-                          np.ascontiguousarray(scan.pose.t, dtype=np.float64))
+    tree.insertPointCloud(
+        np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(scan.pose.t, dtype=np.float64)
+    )
     with tempfile.NamedTemporaryFile(suffix=".bt") as f:
         tree.writeBinary(f.name.encode())
         return Path(f.name).stat().st_size
@@ -68,7 +71,9 @@ def main() -> None:
         a = auroc_by_encoding(scans, models, res, bbox)
         print(f"| {name} | {res} m | {a['none']:.4f} | {a['f32']:.4f} | {a['q']:.4f} | {a['q'] - a['f32']:+.4f} |")
 
-    print("\n| data | components/scan | q B/component | q B/scan | f32 B/scan | raw B/scan | OctoMap .bt 0.1 m B/scan |")
+    print(
+        "\n| data | components/scan | q B/component | q B/scan | f32 B/scan | raw B/scan | OctoMap .bt 0.1 m B/scan |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, scans, models, raw_per_beam in [("Intel 2D", intel, intel_models, 4), ("Kurt3D", kurt, kurt_models, 12)]:
         q = [len(encode(scan_message(m, s), "q")) for m, s in zip(models, scans)]
@@ -76,8 +81,10 @@ def main() -> None:
         raw = [raw_per_beam * (len(s.hits) + len(s.no_return)) for s in scans]
         comps = np.mean([m.n_components for m in models])
         bt = octomap_bt_bytes(scans[0]) if scans[0].pose.dim == 3 else None
-        print(f"| {name} | {comps:.0f} | {np.sum(q) / (comps * len(scans)):.2f} | {np.mean(q):.0f} | {np.mean(f):.0f} | "
-              f"{np.mean(raw):.0f} | {bt if bt is not None else 'n/a (2D)'} |")
+        print(
+            f"| {name} | {comps:.0f} | {np.sum(q) / (comps * len(scans)):.2f} | {np.mean(q):.0f} | {np.mean(f):.0f} | "
+            f"{np.mean(raw):.0f} | {bt if bt is not None else 'n/a (2D)'} |"
+        )
 
 
 if __name__ == "__main__":

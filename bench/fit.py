@@ -13,6 +13,7 @@ one seed to another, for either EM, so the 3D comparison averages over seeds: 40
 `--sklearn-seeds` (default 10, about 7 s each) for scikit-learn. Numba compile is timed
 separately, from an empty numba cache, and excluded from the fit times.
 """
+
 import atexit
 import os
 import shutil
@@ -82,8 +83,14 @@ def bench_2d():
             ll.append((mixture.log_density(scan.hits).mean(), sk_ll, 1e3 * seconds, 1e3 * sk_s))
     ll = np.array(ll)
     ks = [config.n_components(s.hits) for s in scans]
-    return dict(n=len(scans), k=(min(ks), int(np.median(ks)), max(ks)), compile_s=compile_s,
-                ours_ms=np.array(ours_ms), scan_ms=np.array(scan_ms), subset=ll)
+    return dict(
+        n=len(scans),
+        k=(min(ks), int(np.median(ks)), max(ks)),
+        compile_s=compile_s,
+        ours_ms=np.array(ours_ms),
+        scan_ms=np.array(scan_ms),
+        subset=ll,
+    )
 
 
 def scans_3d():
@@ -106,10 +113,15 @@ def bench_3d(sklearn_seeds: int):
         points = hits[np.random.default_rng(0).choice(len(hits), N_3D, replace=False)]
         row = dict(name=name, n=len(hits))
         for n_init in (2, 1):
-            row[n_init] = 1e3 * np.median([timed(fit_mixture, points, K_3D, reg_covar=REG, n_init=n_init)[1]
-                                           for _ in range(RUNS_3D)])
-            row[n_init, "ll"] = mean_and_error([fit_mixture(points, K_3D, reg_covar=REG, seed=seed, n_init=n_init)
-                                                .log_density(points).mean() for seed in range(OURS_SEEDS)])
+            row[n_init] = 1e3 * np.median(
+                [timed(fit_mixture, points, K_3D, reg_covar=REG, n_init=n_init)[1] for _ in range(RUNS_3D)]
+            )
+            row[n_init, "ll"] = mean_and_error(
+                [
+                    fit_mixture(points, K_3D, reg_covar=REG, seed=seed, n_init=n_init).log_density(points).mean()
+                    for seed in range(OURS_SEEDS)
+                ]
+            )
         sk = [sklearn_fit(points, K_3D, seed) for seed in range(sklearn_seeds)]
         row["sk_ms"], row["sk_iter"] = 1e3 * sk[0][1], sk[0][2]
         row["sk_ll"] = mean_and_error([ll for ll, _, _ in sk])
@@ -128,35 +140,51 @@ def main():
     print(f"\n{machine_line()}; numba and BLAS limited to 1 thread")
     print(f"numba compile of fit_mixture (empty cache, first call): {two['compile_s']:.1f} s\n")
 
-    print(f"2D Intel: {two['n']} scans, K min/median/max = {two['k']}; scikit-learn on every "
-          f"{SKLEARN_EVERY}th scan ({len(sub)} scans)\n")
+    print(
+        f"2D Intel: {two['n']} scans, K min/median/max = {two['k']}; scikit-learn on every "
+        f"{SKLEARN_EVERY}th scan ({len(sub)} scans)\n"
+    )
     print("| 2D Intel, per scan | median ms | p90 ms | mean log-lik / point |")
     print("|---|---|---|---|")
-    print(f"| ours `fit_mixture`, all {two['n']} scans | {np.median(ours_ms):.2f} "
-          f"| {np.percentile(ours_ms, 90):.2f} | - |")
-    print(f"| ours `fit_scan` (occupied + free), all {two['n']} scans | {np.median(two['scan_ms']):.2f} "
-          f"| {np.percentile(two['scan_ms'], 90):.2f} | - |")
-    print(f"| ours `fit_mixture`, subset | {np.median(ours_sub_ms):.2f} | {np.percentile(ours_sub_ms, 90):.2f} "
-          f"| {ours_ll.mean():.4f} |")
+    print(
+        f"| ours `fit_mixture`, all {two['n']} scans | {np.median(ours_ms):.2f} "
+        f"| {np.percentile(ours_ms, 90):.2f} | - |"
+    )
+    print(
+        f"| ours `fit_scan` (occupied + free), all {two['n']} scans | {np.median(two['scan_ms']):.2f} "
+        f"| {np.percentile(two['scan_ms'], 90):.2f} | - |"
+    )
+    print(
+        f"| ours `fit_mixture`, subset | {np.median(ours_sub_ms):.2f} | {np.percentile(ours_sub_ms, 90):.2f} "
+        f"| {ours_ll.mean():.4f} |"
+    )
     print(f"| scikit-learn, subset | {np.median(sk_ms):.2f} | {np.percentile(sk_ms, 90):.2f} | {sk_ll.mean():.4f} |")
     rel = (ours_ll - sk_ll) / np.abs(sk_ll)
-    print(f"\nsubset: speed-up (median of per-scan ratios) {np.median(sk_ms / ours_sub_ms):.0f}x; "
-          f"log-lik ours - sklearn: mean {np.mean(ours_ll - sk_ll):+.4f} nats/point, "
-          f"per-scan relative median {100 * np.median(rel):+.2f}%, worst {100 * rel.min():+.2f}%, "
-          f"ours >= sklearn on {np.mean(ours_ll >= sk_ll) * 100:.0f}% of scans\n")
+    print(
+        f"\nsubset: speed-up (median of per-scan ratios) {np.median(sk_ms / ours_sub_ms):.0f}x; "
+        f"log-lik ours - sklearn: mean {np.mean(ours_ll - sk_ll):+.4f} nats/point, "
+        f"per-scan relative median {100 * np.median(rel):+.2f}%, worst {100 * rel.min():+.2f}%, "
+        f"ours >= sklearn on {np.mean(ours_ll >= sk_ll) * 100:.0f}% of scans\n"
+    )
 
-    print(f"3D: {N_3D:,} points (seeded subsample), K = {K_3D}; times: median of {RUNS_3D} runs (ours), "
-          f"1 run (scikit-learn, tol 1e-3, iterations in brackets), seed 0; log-likelihood per point: "
-          f"mean +- standard error over seeds 0-{OURS_SEEDS - 1} (ours) and 0-{args.sklearn_seeds - 1} "
-          f"(scikit-learn)\n")
-    print("| 3D scan (points) | ours ms | ours, 1 start ms | scikit-learn ms (iters) | speed-up "
-          "| log-lik: scikit-learn | ours | ours, 1 start | ours - scikit-learn |")
+    print(
+        f"3D: {N_3D:,} points (seeded subsample), K = {K_3D}; times: median of {RUNS_3D} runs (ours), "
+        f"1 run (scikit-learn, tol 1e-3, iterations in brackets), seed 0; log-likelihood per point: "
+        f"mean +- standard error over seeds 0-{OURS_SEEDS - 1} (ours) and 0-{args.sklearn_seeds - 1} "
+        f"(scikit-learn)\n"
+    )
+    print(
+        "| 3D scan (points) | ours ms | ours, 1 start ms | scikit-learn ms (iters) | speed-up "
+        "| log-lik: scikit-learn | ours | ours, 1 start | ours - scikit-learn |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in three:
         (sk, sk_se), (ll2, se2), (ll1, se1) = r["sk_ll"], r[2, "ll"], r[1, "ll"]
-        print(f"| {r['name']} ({r['n']:,}) | {r[2]:.0f} | {r[1]:.0f} | {r['sk_ms']:.0f} ({r['sk_iter']}) "
-              f"| {r['sk_ms'] / r[2]:.0f}x | {sk:.4f} +- {sk_se:.4f} | {ll2:.4f} +- {se2:.4f} "
-              f"| {ll1:.4f} +- {se1:.4f} | {ll2 - sk:+.4f} ({100 * (ll2 - sk) / abs(sk):+.2f} %) |")
+        print(
+            f"| {r['name']} ({r['n']:,}) | {r[2]:.0f} | {r[1]:.0f} | {r['sk_ms']:.0f} ({r['sk_iter']}) "
+            f"| {r['sk_ms'] / r[2]:.0f}x | {sk:.4f} +- {sk_se:.4f} | {ll2:.4f} +- {se2:.4f} "
+            f"| {ll1:.4f} +- {se1:.4f} | {ll2 - sk:+.4f} ({100 * (ll2 - sk) / abs(sk):+.2f} %) |"
+        )
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ Prints a report (JSON with --json) and exits 1 when a check fails. Usage:
 
     .venv/bin/python bench/fuzz_ingest.py [--messages 100000] [--seed 0] [--max-seconds 900] [--json]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -57,14 +58,26 @@ def counts(metrics: str, name: str) -> Counter:
     for line in metrics.splitlines():
         if line.startswith(name + "{"):
             series, value = line.rsplit(" ", 1)
-            labels = dict(part.split("=", 1) for part in series[len(name) + 1:-1].split(","))
+            labels = dict(part.split("=", 1) for part in series[len(name) + 1 : -1].split(","))
             out[labels.get("kind", '""').strip('"'), labels.get("reason", '""').strip('"')] += float(value)
     return out
 
 
 def start_server(data: Path, zport: int, hport: int, log: Path) -> subprocess.Popen:
-    command = [sys.executable, "-m", "services.cli", "server", "--fleet", FLEET, "--zenoh-listen",
-               f"tcp/127.0.0.1:{zport}", "--http", f"127.0.0.1:{hport}", "--data-dir", str(data)]
+    command = [
+        sys.executable,
+        "-m",
+        "services.cli",
+        "server",
+        "--fleet",
+        FLEET,
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{zport}",
+        "--http",
+        f"127.0.0.1:{hport}",
+        "--data-dir",
+        str(data),
+    ]
     proc = subprocess.Popen(command, cwd=ROOT, stdout=log.open("wb"), stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 60
     while "gmmap server ready" not in log.read_text(errors="replace"):
@@ -94,6 +107,7 @@ def fuzz(messages: int, seed: int, max_seconds: float, work: Path) -> dict:
         started = time.monotonic()
         sent = 0
         from tqdm import tqdm
+
         for _ in tqdm(range(messages), desc="fuzz ingest", unit="msg", mininterval=1, file=sys.stderr):
             if time.monotonic() - started > max_seconds:
                 break
@@ -143,13 +157,22 @@ def fuzz(messages: int, seed: int, max_seconds: float, work: Path) -> dict:
         else:
             report["exit_code"] = server.returncode
     store = check_store(data)
-    report["store"] = {"integrity": store.integrity, "scans": store.scans, "poses": store.poses,
-                       "bad_rows": len(store.bad), "first_bad": store.bad[:3]}
+    report["store"] = {
+        "integrity": store.integrity,
+        "scans": store.scans,
+        "poses": store.poses,
+        "bad_rows": len(store.bad),
+        "first_bad": store.bad[:3],
+    }
     report["log_tracebacks"] = (work / "server.log").read_text(errors="replace").count("Traceback")
-    report["ok"] = bool(report.get("alive") and report["exit_code"] == 0 and store.ok
-                        and report.get("rejections_match_oracle")
-                        and report.get("accepted", 0) + report.get("rejected", 0) == report.get("sent")
-                        and report["log_tracebacks"] == 0)
+    report["ok"] = bool(
+        report.get("alive")
+        and report["exit_code"] == 0
+        and store.ok
+        and report.get("rejections_match_oracle")
+        and report.get("accepted", 0) + report.get("rejected", 0) == report.get("sent")
+        and report["log_tracebacks"] == 0
+    )
     return report
 
 

@@ -10,6 +10,7 @@ maximum of 20 each). Exit status: schemathesis's, or 1 when the server did not h
 
     .venv/bin/python bench/http_fuzz.py [--max-examples 1000] [--seed 0] [--scans 100]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,8 +36,13 @@ SCHEMATHESIS = Path(sys.executable).with_name("schemathesis")
 
 
 def cli(work: Path, name: str, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=work, stdout=(work / f"{name}.log").open("wb"),
-                            stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=work,
+        stdout=(work / f"{name}.log").open("wb"),
+        stderr=subprocess.STDOUT,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
 
 
 OVERSIZED = {  # what a careless or hostile client may ask; each must be refused before any work
@@ -46,8 +52,10 @@ OVERSIZED = {  # what a careless or hostile client may ask; each must be refused
     "GET 20,001 points": "/v1/occupancy/points?resolution=0.1&xy=" + ",".join(["1"] * 40_002),
     "POST declaring a 2 MB body": None,  # refused on its headers, before the body is read
 }
-POST_HEAD = (b"POST /v1/occupancy/points HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-             b"Content-Length: 2000000\r\n\r\n")
+POST_HEAD = (
+    b"POST /v1/occupancy/points HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+    b"Content-Length: 2000000\r\n\r\n"
+)
 
 
 def post_head(port: int) -> int:
@@ -87,17 +95,54 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="gmmap-http-fuzz-") as tmp:
         work = Path(tmp)
         zport, hport = free_port(), free_port()
-        server = cli(work, "server", "server", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
-                     "--http", f"127.0.0.1:{hport}", "--data-dir", str(work / "data"))
+        server = cli(
+            work,
+            "server",
+            "server",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--http",
+            f"127.0.0.1:{hport}",
+            "--data-dir",
+            str(work / "data"),
+        )
         try:
-            agent = cli(work, "agent", "agent", "--robot", "r1", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
-                        "--source", f"carmen:{LOG}", "--scans", f"0:{args.scans}", "--outbox", str(work / "outbox.db"))
+            agent = cli(
+                work,
+                "agent",
+                "agent",
+                "--robot",
+                "r1",
+                "--zenoh-connect",
+                f"tcp/127.0.0.1:{zport}",
+                "--source",
+                f"carmen:{LOG}",
+                "--scans",
+                f"0:{args.scans}",
+                "--outbox",
+                str(work / "outbox.db"),
+            )
             if agent.wait(300) != 0:
                 print((work / "agent.log").read_text(errors="replace")[-2000:], file=sys.stderr)
                 return 1
-            command = [str(SCHEMATHESIS), "run", f"http://127.0.0.1:{hport}/openapi.json", "--checks", "all",
-                       "--exclude-checks", "positive_data_acceptance", "--max-examples", str(args.max_examples),
-                       "--seed", str(args.seed), "--request-timeout", "30", "--workers", "1", "--no-color"]
+            command = [
+                str(SCHEMATHESIS),
+                "run",
+                f"http://127.0.0.1:{hport}/openapi.json",
+                "--checks",
+                "all",
+                "--exclude-checks",
+                "positive_data_acceptance",
+                "--max-examples",
+                str(args.max_examples),
+                "--seed",
+                str(args.seed),
+                "--request-timeout",
+                "30",
+                "--workers",
+                "1",
+                "--no-color",
+            ]
             print("$ " + " ".join(command[1:]), flush=True)
             started = time.perf_counter()
             run = subprocess.run(command, cwd=work, capture_output=True, text=True)
@@ -111,9 +156,11 @@ def main() -> int:
             server.send_signal(signal.SIGTERM)
             code = server.wait(30)
         tracebacks = (work / "server.log").read_text(errors="replace").count("Traceback")
-    print(f"schemathesis exit {run.returncode} after {elapsed:.0f} s; test cases: "
-          f"{cases.group(0) if cases else '?'}; server healthy after: {healthy}, exit code {code}, "
-          f"tracebacks in its log: {tracebacks}")
+    print(
+        f"schemathesis exit {run.returncode} after {elapsed:.0f} s; test cases: "
+        f"{cases.group(0) if cases else '?'}; server healthy after: {healthy}, exit code {code}, "
+        f"tracebacks in its log: {tracebacks}"
+    )
     for name, result in refusals.items():
         print(f"  refused {name:<30} {result}")
     return run.returncode or int(not healthy or code != 0 or tracebacks > 0)

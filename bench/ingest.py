@@ -7,6 +7,7 @@ this is the end-to-end rate of durable ingest. Usage:
 
     .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gmm_core import Pose, fit_scan  # noqa: E402
-from protocol import (Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key,  # noqa: E402
-                      scan_key)
+from protocol import Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key, scan_key  # noqa: E402
 from services.datasets import read_scans  # noqa: E402
 from services.sim.processes import free_port  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
@@ -41,15 +41,34 @@ def main() -> int:
     scans = list(read_scans(LOG))
     models = [fit_scan(s.hits, s.no_return) for s in scans]
     robots = [f"r{i}" for i in range(args.robots)]
-    messages = [(scan_key("default", r, s.index), encode(ScanMessage("default", r, s.index, s.stamp, m, s.pose)))
-                for r in robots for s, m in zip(scans, models)]
+    messages = [
+        (scan_key("default", r, s.index), encode(ScanMessage("default", r, s.index, s.stamp, m, s.pose)))
+        for r in robots
+        for s, m in zip(scans, models)
+    ]
     total_bytes = sum(len(raw) for _, raw in messages)
 
     port = free_port()
     with tempfile.TemporaryDirectory() as data:
-        server = subprocess.Popen([sys.executable, "-m", "services.cli", "server", "--zenoh-listen",
-                                   f"tcp/127.0.0.1:{port}", "--http", "", "--data-dir", data,
-                                   "--synchronous", args.synchronous], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        server = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "server",
+                "--zenoh-listen",
+                f"tcp/127.0.0.1:{port}",
+                "--http",
+                "",
+                "--data-dir",
+                data,
+                "--synchronous",
+                args.synchronous,
+            ],
+            cwd=ROOT,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         session = None
         try:
             if "ready" not in server.stderr.readline():
@@ -83,11 +102,17 @@ def main() -> int:
             latencies = []
             for revision in range(1, 6):
                 acked_rev = threading.Event()
-                got = lambda s, r=revision: decode(s.payload.to_bytes(), expect=Ack).ids == (r,) and acked_rev.set()  # noqa: E731
+
+                def got(sample, r=revision, acked=acked_rev):
+                    return decode(sample.payload.to_bytes(), expect=Ack).ids == (r,) and acked.set()
+
                 sub = session.declare_subscriber(ack_key("default", robots[0]), got)
-                update = PoseGraphUpdate("default", robots[0], revision,
-                                         tuple((s.index, s.pose.compose(Pose.from_xytheta(0.01 * revision, 0, 0)))
-                                               for s in scans))
+                update = PoseGraphUpdate(
+                    "default",
+                    robots[0],
+                    revision,
+                    tuple((s.index, s.pose.compose(Pose.from_xytheta(0.01 * revision, 0, 0))) for s in scans),
+                )
                 raw = encode(update)
                 t = time.perf_counter()
                 session.put(poses_key("default", robots[0]), raw, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -104,11 +129,15 @@ def main() -> int:
             server.terminate()
             server.wait(15)
     n = len(messages)
-    print(f"{n} scan messages ({total_bytes / n:.0f} B each, {args.robots} robots), synchronous={args.synchronous}: "
-          f"published in {published - start:.2f} s, all stored and acknowledged in {seconds:.2f} s "
-          f"-> {n / seconds:.0f} messages/s, {total_bytes / seconds / 1e6:.1f} MB/s")
-    print(f"pose-graph update of all {len(scans)} nodes of one robot ({len(raw)} B), put -> stored, applied, "
-          f"acknowledged: median {sorted(latencies)[2] * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
+    print(
+        f"{n} scan messages ({total_bytes / n:.0f} B each, {args.robots} robots), synchronous={args.synchronous}: "
+        f"published in {published - start:.2f} s, all stored and acknowledged in {seconds:.2f} s "
+        f"-> {n / seconds:.0f} messages/s, {total_bytes / seconds / 1e6:.1f} MB/s"
+    )
+    print(
+        f"pose-graph update of all {len(scans)} nodes of one robot ({len(raw)} B), put -> stored, applied, "
+        f"acknowledged: median {sorted(latencies)[2] * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms"
+    )
     return 0
 
 

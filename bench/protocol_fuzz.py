@@ -5,6 +5,7 @@ the decoder's safety net caught ("unchecked error").
 
     .venv/bin/python bench/protocol_fuzz.py [--cases N] [--seed S]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -57,12 +58,19 @@ def main() -> int:
             crashes.append((mutation, data, traceback.format_exc()))
     elapsed = time.perf_counter() - start
 
-    print(f"\n{args.cases} cases in {elapsed:.1f} s ({elapsed / args.cases * 1e6:.0f} us per case), "
-          f"{len(seeds)} seed messages, seed {args.seed}")
+    print(
+        f"\n{args.cases} cases in {elapsed:.1f} s ({elapsed / args.cases * 1e6:.0f} us per case), "
+        f"{len(seeds)} seed messages, seed {args.seed}"
+    )
     print(f"{'mutation':<12}{'valid':>10}{'ProtocolError':>15}{'CRASH':>8}")
     for mutation in sorted({m for m, _ in by_mutation}):
-        print(f"{mutation:<12}" + "".join(f"{by_mutation[mutation, outcome]:>{width}}"
-                                          for outcome, width in (("valid", 10), ("ProtocolError", 15), ("CRASH", 8))))
+        print(
+            f"{mutation:<12}"
+            + "".join(
+                f"{by_mutation[mutation, outcome]:>{width}}"
+                for outcome, width in (("valid", 10), ("ProtocolError", 15), ("CRASH", 8))
+            )
+        )
     totals = collections.Counter()
     for (_, outcome), count in by_mutation.items():
         totals[outcome] += count

@@ -14,6 +14,7 @@ On grids too big for the cache ours sorts the rays by the block their end point 
 (inside the timed call); "beam order" rows trace the same 3D rays sorted as a 64-ring spinning
 lidar emits them (ring, then azimuth), for ours only.
 """
+
 import os
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # this octomap wheel links no OpenMP; be sure anyway
@@ -73,7 +74,7 @@ def ours(origin: np.ndarray, ends: np.ndarray, resolution: float, threads: int) 
 
 def octomap_rays_per_s(origin: np.ndarray, ends: np.ndarray, resolution: float) -> float:
     """rays/s, median of RUNS fresh trees, each fed OCTOMAP_SCANS scans."""
-    scans = [np.ascontiguousarray(ends[s * OCTOMAP_SCAN:(s + 1) * OCTOMAP_SCAN]) for s in range(OCTOMAP_SCANS)]
+    scans = [np.ascontiguousarray(ends[s * OCTOMAP_SCAN : (s + 1) * OCTOMAP_SCAN]) for s in range(OCTOMAP_SCANS)]
     times = []
     for _ in range(RUNS):
         tree = octomap.OcTree(resolution)
@@ -88,8 +89,15 @@ def main():
     rng = np.random.default_rng(0)
     rays = {"3D": random_rays(N_OURS, 3, rng), "2D": random_rays(N_OURS, 2, rng)}
     rays["3D, beam order"] = rays["3D"][0], beam_order(*rays["3D"])
-    cases = [("3D", 0.25), ("3D", 0.1), ("3D, beam order", 0.25), ("3D, beam order", 0.1),
-             ("2D", 0.25), ("2D", 0.1), ("2D", 0.05)]
+    cases = [
+        ("3D", 0.25),
+        ("3D", 0.1),
+        ("3D, beam order", 0.25),
+        ("3D, beam order", 0.1),
+        ("2D", 0.25),
+        ("2D", 0.1),
+        ("2D", 0.05),
+    ]
     rows = []
     for name, res in tqdm(cases, desc="ray tracing"):
         origin, ends = rays[name]
@@ -99,10 +107,14 @@ def main():
         rows.append((name, res, cells, one, two, octo))
 
     print(f"\n{machine_line()}")
-    print(f"{N_OURS:,} rays of {LENGTH:g} m for ours (one call, median of {RUNS}); "
-          f"OctoMap: {OCTOMAP_SCANS} scans of {OCTOMAP_SCAN:,} of the same rays, median of {RUNS}\n")
-    print("| rays | resolution | cells crossed / ray | ours, 1 core (M rays/s) | ours, 2 threads "
-          "(M rays/s) | OctoMap, 1 core (M rays/s) | ours / OctoMap (1 core) |")
+    print(
+        f"{N_OURS:,} rays of {LENGTH:g} m for ours (one call, median of {RUNS}); "
+        f"OctoMap: {OCTOMAP_SCANS} scans of {OCTOMAP_SCAN:,} of the same rays, median of {RUNS}\n"
+    )
+    print(
+        "| rays | resolution | cells crossed / ray | ours, 1 core (M rays/s) | ours, 2 threads "
+        "(M rays/s) | OctoMap, 1 core (M rays/s) | ours / OctoMap (1 core) |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, res, cells, one, two, octo in rows:
         octo_cols = f"{octo / 1e6:.3f} | {one / octo:.1f}x" if octo else "- | -"

@@ -2,6 +2,7 @@
 
 numpy + numba only: no I/O, no network, no threads of its own beyond numba's kernels.
 """
+
 from gmm_core.grid import Grid
 from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose

@@ -11,6 +11,7 @@ point, not K; it is fused with the sums of the M-step, and the M-step runs after
 points (incremental EM, Neal & Hinton 1998), so one pass over the data moves the parameters
 several times.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -314,7 +315,7 @@ def _e_step_block(points, features, point_cell, lo_i, hi_i, start, items, prec, 
     for i in range(lo_i, hi_i):
         if point_cell[i] != c:
             c = point_cell[i]
-            comps = items[start[c]:start[c + 1]] if start[c + 1] > start[c] else everyone
+            comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
         best = -np.inf
         for j in range(comps.shape[0]):
             log_p[j] = log_norm[comps[j]] - 0.5 * _mahalanobis(points, i, prec, means, comps[j])
@@ -379,8 +380,19 @@ def _refine(points, weights, means, covs, reg_covar, max_iter, tol):
             if passes > 1 or b == 0:  # the parameters have moved since the last lists
                 _prepare(weights, means, covs, prec, log_norm)
                 start, items = _candidates(weights, means, covs, lo, cell, dims)
-            ll += _e_step_block(points, features, point_cell, (b * n) // n_blocks, ((b + 1) * n) // n_blocks,
-                                start, items, prec, means, log_norm, block_stats[b])
+            ll += _e_step_block(
+                points,
+                features,
+                point_cell,
+                (b * n) // n_blocks,
+                ((b + 1) * n) // n_blocks,
+                start,
+                items,
+                prec,
+                means,
+                log_norm,
+                block_stats[b],
+            )
             if passes > 1 or b == n_blocks - 1:
                 _m_step(block_stats.sum(axis=0), reg_covar, weights, means, covs)
         ll /= n
@@ -417,10 +429,18 @@ def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_p
     return weights, means, covs
 
 
-def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-4,
-                max_iter: int = 100, tol: float = 1e-3, seed: int = 0,
-                init_points_per_component: float = 40.0, max_polish_iter: int = 15,
-                n_init: int | None = None) -> Mixture:
+def fit_mixture(
+    points: np.ndarray,
+    n_components: int,
+    *,
+    reg_covar: float = 1e-4,
+    max_iter: int = 100,
+    tol: float = 1e-3,
+    seed: int = 0,
+    init_points_per_component: float = 40.0,
+    max_polish_iter: int = 15,
+    n_init: int | None = None,
+) -> Mixture:
     """Maximum-likelihood mixture of `n_components` Gaussians for (n, d) points, by EM.
 
     `reg_covar` is added to every variance (as scikit-learn's reg_covar), so duplicate,
@@ -448,8 +468,16 @@ def fit_mixture(points: np.ndarray, n_components: int, *, reg_covar: float = 1e-
     if n_init is None:
         n_init = 2 if d == 3 else 1
     shift = points.mean(axis=0)
-    weights, means, covs = _em(points - shift, k, float(reg_covar), int(max_iter), float(tol), int(seed),
-                               max(int(init_points_per_component * k), 1), max(int(max_polish_iter), 1),
-                               max(int(n_init), 1))
+    weights, means, covs = _em(
+        points - shift,
+        k,
+        float(reg_covar),
+        int(max_iter),
+        float(tol),
+        int(seed),
+        max(int(init_points_per_component * k), 1),
+        max(int(max_polish_iter), 1),
+        max(int(n_init), 1),
+    )
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), means[keep] + shift, covs[keep], n)

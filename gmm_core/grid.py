@@ -1,4 +1,5 @@
 """The grid convention (docs/ARCHITECTURE.md, "Conventions"): origin = min corner, index [iy, ix] or [iz, iy, ix]."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
 """Map quality: area under the ROC curve."""
+
 from __future__ import annotations
 
 import numpy as np

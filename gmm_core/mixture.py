@@ -1,4 +1,5 @@
 """Gaussian mixtures (Eq. 1) with their support size, and their rigid transform (Eq. 2)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
 """From evidence counts to occupancy: the MAP estimate (Eq. 11) and the variance dead band (Eq. 12)."""
+
 from __future__ import annotations
 
 import numpy as np

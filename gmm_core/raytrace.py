@@ -21,6 +21,7 @@ the buffers are added in at the end: a thread never zeroes, fills or sums a whol
 grid. Each chunk and the buffers' sum run in a fixed order, so the same rays and thread count give
 the same sums, bit for bit.
 """
+
 from __future__ import annotations
 
 import numba
@@ -146,8 +147,7 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
 
 
 @njit(cache=True, error_model="numpy")  # 1 / 0 is inf: an axis the ray does not move along
-def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, dims, box, offset,
-                 hits, misses):
+def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, dims, box, offset, hits, misses):
     """Trace rays first_ray:last_ray; cell (x, y, z) of the grid is entry (z ny + y) nx + x - offset
     of hits and misses, which hold the cells of `box` along the slowest axis."""
     nx, ny, nz = dims[0], dims[1], dims[2]
@@ -176,13 +176,57 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
         n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
         tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
         cells[0] = (z * ny + y) * nx + x - offset
-        at = _enter(cells, 1, n_x, np.float64(x + step_x - offset), np.float64(step_x),
-                    uoy + tx * udy, step_x * ix * udy, y_lo, y_hi, sy,
-                    uoz + tx * udz, step_x * ix * udz, z_lo, z_hi, sz)
-        at = _enter(cells, at, n_y, (y + step_y) * sy - offset, step_y * sy, uox + ty * udx,
-                    step_y * iy * udx, x_lo, x_hi, 1.0, uoz + ty * udz, step_y * iy * udz, z_lo, z_hi, sz)
-        at = _enter(cells, at, n_z, (z + step_z) * sz - offset, step_z * sz, uox + tz * udx,
-                    step_z * iz * udx, x_lo, x_hi, 1.0, uoy + tz * udy, step_z * iz * udy, y_lo, y_hi, sy)
+        at = _enter(
+            cells,
+            1,
+            n_x,
+            np.float64(x + step_x - offset),
+            np.float64(step_x),
+            uoy + tx * udy,
+            step_x * ix * udy,
+            y_lo,
+            y_hi,
+            sy,
+            uoz + tx * udz,
+            step_x * ix * udz,
+            z_lo,
+            z_hi,
+            sz,
+        )
+        at = _enter(
+            cells,
+            at,
+            n_y,
+            (y + step_y) * sy - offset,
+            step_y * sy,
+            uox + ty * udx,
+            step_y * iy * udx,
+            x_lo,
+            x_hi,
+            1.0,
+            uoz + ty * udz,
+            step_y * iy * udz,
+            z_lo,
+            z_hi,
+            sz,
+        )
+        at = _enter(
+            cells,
+            at,
+            n_z,
+            (z + step_z) * sz - offset,
+            step_z * sz,
+            uox + tz * udx,
+            step_z * iz * udx,
+            x_lo,
+            x_hi,
+            1.0,
+            uoy + tz * udy,
+            step_z * iz * udy,
+            y_lo,
+            y_hi,
+            sy,
+        )
         # The end cell: the last one of the axis whose last boundary comes latest (the start cell
         # when the ray crosses none). Swapped to the back, it stays out of the loop of misses.
         t_x = tx + (n_x - 1) * abs(ix) if n_x > 0 else -1.0
@@ -221,16 +265,25 @@ def _trace(origins, rays, grid_origin, resolution, dims, sorted_, n_chunks, hits
     for c in prange(n_chunks):
         first, last = n_rays * c // n_chunks, n_rays * (c + 1) // n_chunks
         if c == 0:
-            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c], 0,
-                         hits, misses)
+            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c], 0, hits, misses)
         else:
-            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c],
-                         boxes[c, 0, axis] * stride,
-                         hit_buffer[start[c]:start[c + 1]], miss_buffer[start[c]:start[c + 1]])
+            _trace_chunk(
+                origins,
+                rays,
+                first,
+                last,
+                grid_origin,
+                resolution,
+                dims,
+                boxes[c],
+                boxes[c, 0, axis] * stride,
+                hit_buffer[start[c] : start[c + 1]],
+                miss_buffer[start[c] : start[c + 1]],
+            )
     for c in range(1, n_chunks):
         cells = slice(boxes[c, 0, axis] * stride, boxes[c, 1, axis] * stride)
-        hits[cells] += hit_buffer[start[c]:start[c + 1]]
-        misses[cells] += miss_buffer[start[c]:start[c + 1]]
+        hits[cells] += hit_buffer[start[c] : start[c + 1]]
+        misses[cells] += miss_buffer[start[c] : start[c + 1]]
 
 
 @njit(cache=True, nogil=True)
@@ -265,8 +318,15 @@ def _as_3d(points: np.ndarray, dim: int, z: float) -> np.ndarray:
     return np.ascontiguousarray(np.column_stack([points, np.full(len(points), z)]))
 
 
-def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np.ndarray,
-               weights: np.ndarray, is_hit: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def trace_rays(
+    grid: Grid,
+    origins: np.ndarray,
+    ray_origin: np.ndarray,
+    ends: np.ndarray,
+    weights: np.ndarray,
+    is_hit: np.ndarray,
+    threads: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Hit and miss counts on `grid` from rays origins[ray_origin[r]] -> ends[r].
 
     Every cell a ray crosses inside the grid gains `weights[r]` misses, except the cell of its
@@ -282,8 +342,15 @@ def trace_rays(grid: Grid, origins: np.ndarray, ray_origin: np.ndarray, ends: np
     z_mid = 0.5 * grid.resolution  # 2D: rays run along the mid-plane of a one-cell-thick grid
     grid_origin = _as_3d(grid.origin, d, 0.0)[0]
     dims = np.array(list(grid.shape) + ([1] if d == 2 else []), dtype=np.int64)
-    rays = (_as_3d(origins, d, z_mid), np.ascontiguousarray(ray_origin, dtype=np.int64), _as_3d(ends, d, z_mid),
-            np.ascontiguousarray(weights, dtype=np.float64), np.ascontiguousarray(is_hit, dtype=np.bool_),
-            grid_origin, grid.resolution, dims)
+    rays = (
+        _as_3d(origins, d, z_mid),
+        np.ascontiguousarray(ray_origin, dtype=np.int64),
+        _as_3d(ends, d, z_mid),
+        np.ascontiguousarray(weights, dtype=np.float64),
+        np.ascontiguousarray(is_hit, dtype=np.bool_),
+        grid_origin,
+        grid.resolution,
+        dims,
+    )
     hits, misses = _counts(*rays, threads or numba.get_num_threads())
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)

@@ -4,6 +4,7 @@
 origin by the scan's pose (the points-level form of Eq. 2) and ray-traces them; `count_beams`
 is the plain counting occupancy grid from the raw beams, through the same ray tracer.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -37,8 +38,13 @@ class ReconstructionConfig:
             raise ValueError(f"reconstruction.variance: sigma^2 of Eq. 12 must lie in [0, 0.25], got {self.variance}")
 
 
-def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
-                progress: Callable[[int], None] | None, dtype=np.float32, threads: int | None = None):
+def trace_groups(
+    grid: Grid,
+    rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    progress: Callable[[int], None] | None,
+    dtype=np.float32,
+    threads: int | None = None,
+):
     """Trace groups of rays (world origin, world ends, weights, is_hit) in batches.
 
     Counts add up across batches, so memory stays bounded however many scans there are. They are
@@ -55,8 +61,15 @@ def trace_groups(grid: Grid, rays: Iterable[tuple[np.ndarray, np.ndarray, np.nda
         if batch:
             origins = np.stack([b[0] for b in batch])
             ray_origin = np.repeat(np.arange(len(batch)), [len(b[1]) for b in batch])
-            h, m = trace_rays(grid, origins, ray_origin, np.concatenate([b[1] for b in batch]),
-                              np.concatenate([b[2] for b in batch]), np.concatenate([b[3] for b in batch]), threads)
+            h, m = trace_rays(
+                grid,
+                origins,
+                ray_origin,
+                np.concatenate([b[1] for b in batch]),
+                np.concatenate([b[2] for b in batch]),
+                np.concatenate([b[3] for b in batch]),
+                threads,
+            )
             np.add(hits, h, out=hits)
             np.add(misses, m, out=misses)
             if progress is not None:
@@ -79,9 +92,13 @@ def _reaches(grid: Grid, origin: np.ndarray, ends: np.ndarray) -> bool:
     return bool(np.all(lo <= grid.upper) and np.all(hi >= grid.origin))
 
 
-def reconstruct(grid: Grid, scans: Iterable[tuple[ScanModel, Pose, int]], *,
-                samples_per_cell: float = 1.0,
-                progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def reconstruct(
+    grid: Grid,
+    scans: Iterable[tuple[ScanModel, Pose, int]],
+    *,
+    samples_per_cell: float = 1.0,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Expected hit and miss counts on `grid` from (scan model, world pose, seed) triples.
 
     Samples are drawn in the scan frame from `seed`, so a pose correction moves the same
@@ -101,8 +118,12 @@ def reconstruct(grid: Grid, scans: Iterable[tuple[ScanModel, Pose, int]], *,
     return trace_groups(grid, rays(), progress)
 
 
-def count_beams(grid: Grid, beams: Iterable[tuple[np.ndarray, np.ndarray, Pose]], max_range: float,
-                progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def count_beams(
+    grid: Grid,
+    beams: Iterable[tuple[np.ndarray, np.ndarray, Pose]],
+    max_range: float,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The counting occupancy grid of raw beams: (hits, no-return directions, sensor pose) per scan.
 
     Hits are in the sensor frame; a no-return beam adds misses up to `max_range`.

@@ -5,6 +5,7 @@ resolution, and each sample carries the weight N pi_k / n_k. Summed along rays, 
 estimate the expected number of beams (Eq. 10) whatever n_k is: more samples only lower the
 Monte-Carlo variance, so maps at different resolutions agree in their counts.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -70,9 +71,11 @@ def scan_rays(model: ScanModel, resolution: float, seed: int, samples_per_cell: 
     """
     rng = np.random.default_rng([seed, int(round(resolution * 1e6))])
     occ_points, occ_w = sample_mixture(
-        model.occupied, samples_per_component(model.occupied, resolution, samples_per_cell), rng)
+        model.occupied, samples_per_component(model.occupied, resolution, samples_per_cell), rng
+    )
     free_points, free_w = sample_mixture(
-        model.free, samples_per_component(model.free, resolution, samples_per_cell), rng)
+        model.free, samples_per_component(model.free, resolution, samples_per_cell), rng
+    )
     ends = np.concatenate([occ_points, free_points])
     weights = np.concatenate([occ_w, free_w])
     is_hit = np.concatenate([np.ones(len(occ_w), bool), np.zeros(len(free_w), bool)])

@@ -1,4 +1,5 @@
 """One scan as two mixtures: occupied (hit points) and free (no-return beams), Sec. III-A/B."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -101,7 +102,8 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
     ends = no_return.reshape(-1, dim) * config.max_range
 
     def fit(points: np.ndarray) -> Mixture:
-        return fit_mixture(points, config.n_components(points), reg_covar=config.reg_covar,
-                           max_iter=config.max_iter, tol=config.tol)
+        return fit_mixture(
+            points, config.n_components(points), reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol
+        )
 
     return ScanModel(fit(hits), fit(ends), np.zeros(dim), config.max_range)

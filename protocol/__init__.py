@@ -1,4 +1,5 @@
 """What crosses the wire between robots and map servers: messages, codec, key expressions."""
+
 from protocol.codec import ENCODINGS, MAX_BYTES, MAX_COMPONENTS, VERSION, decode, encode
 from protocol.errors import ProtocolError
 from protocol.keys import (
@@ -15,8 +16,27 @@ from protocol.keys import (
 from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
 
 __all__ = [
-    "ENCODINGS", "MAX_BYTES", "MAX_COMPONENTS", "VERSION", "decode", "encode", "ProtocolError",
-    "ack_key", "check_id", "occupancy_key", "occupancy_wildcard", "parse_key", "poses_key",
-    "poses_wildcard", "scan_key", "scan_wildcard",
-    "Ack", "MapQuery", "MapReply", "Message", "PoseGraphUpdate", "Rejection", "ScanMessage",
+    "ENCODINGS",
+    "MAX_BYTES",
+    "MAX_COMPONENTS",
+    "VERSION",
+    "decode",
+    "encode",
+    "ProtocolError",
+    "ack_key",
+    "check_id",
+    "occupancy_key",
+    "occupancy_wildcard",
+    "parse_key",
+    "poses_key",
+    "poses_wildcard",
+    "scan_key",
+    "scan_wildcard",
+    "Ack",
+    "MapQuery",
+    "MapReply",
+    "Message",
+    "PoseGraphUpdate",
+    "Rejection",
+    "ScanMessage",
 ]

@@ -5,6 +5,7 @@ name the encoding "e" of their two mixtures: "f32" (float32 tables, lossless for
 inputs) or "q" (quantised, about a third of the size; see protocol.quantize).
 decode() trusts nothing: whatever the bytes, it returns a valid message or raises ProtocolError.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -47,8 +48,9 @@ def encode(message: Message, encoding: str = "q") -> bytes:
     return msgpack.packb({"v": VERSION, "t": code, **body}, use_bin_type=True)
 
 
-def decode(data: bytes, *, expect: type | None = None, max_components: int = MAX_COMPONENTS,
-           max_bytes: int = MAX_BYTES) -> Message:
+def decode(
+    data: bytes, *, expect: type | None = None, max_components: int = MAX_COMPONENTS, max_bytes: int = MAX_BYTES
+) -> Message:
     """bytes -> a valid message, or ProtocolError naming the offending field; nothing else.
 
     `expect` (a message class) rejects any other type; `max_components` caps the components
@@ -60,8 +62,15 @@ def decode(data: bytes, *, expect: type | None = None, max_components: int = MAX
         raise ProtocolError("message", f"payload of {len(data)} bytes exceeds the maximum of {max_bytes}")
     try:
         raw = msgpack.unpackb(
-            bytes(data), raw=False, strict_map_key=True, object_pairs_hook=_map_without_duplicates,
-            max_str_len=1024, max_bin_len=max_bytes, max_array_len=MAX_LIST, max_map_len=64, max_ext_len=0,
+            bytes(data),
+            raw=False,
+            strict_map_key=True,
+            object_pairs_hook=_map_without_duplicates,
+            max_str_len=1024,
+            max_bin_len=max_bytes,
+            max_array_len=MAX_LIST,
+            max_map_len=64,
+            max_ext_len=0,
         )
     except Exception as error:  # msgpack raises several types (FormatError, ValueError, StackError, ...)
         raise ProtocolError("message", f"malformed msgpack: {type(error).__name__}: {error}") from None
@@ -232,8 +241,13 @@ def _encode_scan(message: ScanMessage, encoding: str) -> dict:
     if not (np.isfinite(model.max_range) and model.max_range > 0):
         raise ProtocolError("max_range", f"must be finite and > 0, got {model.max_range}")
     return {
-        "e": encoding, "f": message.fleet, "r": message.robot, "n": message.node, "s": message.stamp,
-        "d": message.dim, "p": _float32(_pose_vector(message.pose), "pose"),
+        "e": encoding,
+        "f": message.fleet,
+        "r": message.robot,
+        "n": message.node,
+        "s": message.stamp,
+        "d": message.dim,
+        "p": _float32(_pose_vector(message.pose), "pose"),
         "o": _float32(np.append(model.origin, model.max_range), "origin"),
         "O": _encode_mixture(model.occupied, encoding, "occupied"),
         "F": _encode_mixture(model.free, encoding, "free"),
@@ -257,8 +271,9 @@ def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
     counts = [_component_count(stream, dim, encoding, part.name("components")) for part, stream in zip(parts, streams)]
     if sum(counts) > max_components:
         raise ProtocolError("components", f"{sum(counts)} components exceed the maximum of {max_components}")
-    occupied, free = (_decode_mixture(part, stream, count, dim, encoding)
-                      for part, stream, count in zip(parts, streams, counts))
+    occupied, free = (
+        _decode_mixture(part, stream, count, dim, encoding) for part, stream, count in zip(parts, streams, counts)
+    )
     return ScanMessage(fleet, robot, node, stamp, ScanModel(occupied, free, origin, max_range), pose)
 
 
@@ -270,9 +285,13 @@ def _encode_poses(message: PoseGraphUpdate, encoding: str) -> dict:
     vectors = np.array([_pose_vector(pose) for _, pose in message.poses]).reshape(-1, width)
     anchor = None if message.anchor is None else _float64(_pose_vector(message.anchor), "anchor")
     return {
-        "f": message.fleet, "r": message.robot, "d": message.dim, "rev": message.revision,
+        "f": message.fleet,
+        "r": message.robot,
+        "d": message.dim,
+        "rev": message.revision,
         "nodes": np.array([node for node, _ in message.poses], dtype="<u8").tobytes(),
-        "poses": _float64(vectors, "poses.poses"), "anchor": anchor,
+        "poses": _float64(vectors, "poses.poses"),
+        "anchor": anchor,
     }
 
 
@@ -295,8 +314,12 @@ def _counts(array: np.ndarray, field: str) -> list[int]:
 
 
 def _encode_ack(message: Ack, encoding: str) -> dict:
-    return {"f": message.fleet, "r": message.robot, "kind": message.kind,
-            "ids": np.array(message.ids, dtype="<u8").tobytes()}
+    return {
+        "f": message.fleet,
+        "r": message.robot,
+        "kind": message.kind,
+        "ids": np.array(message.ids, dtype="<u8").tobytes(),
+    }
 
 
 def _decode_ack(f: Fields, max_components: int) -> Ack:
@@ -305,8 +328,11 @@ def _decode_ack(f: Fields, max_components: int) -> Ack:
 
 
 def _encode_rejection(message: Rejection, encoding: str) -> dict:
-    return {**_encode_ack(Ack(message.fleet, message.robot, message.kind, message.ids), encoding),
-            "reason": message.reason, "detail": message.detail}
+    return {
+        **_encode_ack(Ack(message.fleet, message.robot, message.kind, message.ids), encoding),
+        "reason": message.reason,
+        "detail": message.detail,
+    }
 
 
 def _decode_rejection(f: Fields, max_components: int) -> Rejection:
@@ -315,9 +341,14 @@ def _decode_rejection(f: Fields, max_components: int) -> Rejection:
 
 
 def _encode_map_query(message: MapQuery, encoding: str) -> dict:
-    return {"f": message.fleet, "d": message.dim, "lo": message.lo.astype("<f8").tobytes(),
-            "hi": message.hi.astype("<f8").tobytes(), "res": message.resolution,
-            "robots": None if message.robots is None else list(message.robots)}
+    return {
+        "f": message.fleet,
+        "d": message.dim,
+        "lo": message.lo.astype("<f8").tobytes(),
+        "hi": message.hi.astype("<f8").tobytes(),
+        "res": message.resolution,
+        "robots": None if message.robots is None else list(message.robots),
+    }
 
 
 def _decode_map_query(f: Fields, max_components: int) -> MapQuery:
@@ -326,16 +357,23 @@ def _decode_map_query(f: Fields, max_components: int) -> MapQuery:
     if robots is not None and type(robots) is not list:
         raise ProtocolError("robots", f"must be an array of robot ids or nil, got {type(robots).__name__}")
     return MapQuery(
-        check_id(f.get("f", "fleet"), "fleet"), f.array("lo", "bbox.lo", "<f8", dim),
-        f.array("hi", "bbox.hi", "<f8", dim), f.float("res", "resolution"),
+        check_id(f.get("f", "fleet"), "fleet"),
+        f.array("lo", "bbox.lo", "<f8", dim),
+        f.array("hi", "bbox.hi", "<f8", dim),
+        f.float("res", "resolution"),
         None if robots is None else tuple(robots),
     )
 
 
 def _encode_map_reply(message: MapReply, encoding: str) -> dict:
-    return {"f": message.fleet, "d": message.dim, "origin": message.origin.astype("<f8").tobytes(),
-            "res": message.resolution, "shape": list(message.probabilities.shape),
-            "p": message.probabilities.astype("<f4").tobytes()}
+    return {
+        "f": message.fleet,
+        "d": message.dim,
+        "origin": message.origin.astype("<f8").tobytes(),
+        "res": message.resolution,
+        "shape": list(message.probabilities.shape),
+        "p": message.probabilities.astype("<f4").tobytes(),
+    }
 
 
 def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
@@ -345,12 +383,28 @@ def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
         raise ProtocolError("shape", f"must be {dim} integers in [1, 2^31], got {shape!r:.80}")
     cells = int(np.prod(shape, dtype=object))
     grid = f.array("p", "probabilities", "<f4", cells).reshape(shape)
-    return MapReply(check_id(f.get("f", "fleet"), "fleet"), f.array("origin", "origin", "<f8", dim),
-                    f.float("res", "resolution"), grid)
+    return MapReply(
+        check_id(f.get("f", "fleet"), "fleet"),
+        f.array("origin", "origin", "<f8", dim),
+        f.float("res", "resolution"),
+        grid,
+    )
 
 
 # An encoder takes the message class that TYPE_CODES gives its code.
 _ENCODERS: dict[int, Callable[[Any, str], dict]] = {
-    1: _encode_scan, 2: _encode_poses, 3: _encode_ack, 4: _encode_map_query, 5: _encode_map_reply, 6: _encode_rejection}
+    1: _encode_scan,
+    2: _encode_poses,
+    3: _encode_ack,
+    4: _encode_map_query,
+    5: _encode_map_reply,
+    6: _encode_rejection,
+}
 _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
-    1: _decode_scan, 2: _decode_poses, 3: _decode_ack, 4: _decode_map_query, 5: _decode_map_reply, 6: _decode_rejection}
+    1: _decode_scan,
+    2: _decode_poses,
+    3: _decode_ack,
+    4: _decode_map_query,
+    5: _decode_map_reply,
+    6: _decode_rejection,
+}

@@ -1,4 +1,5 @@
 """The one exception type for everything that cannot cross the wire."""
+
 from __future__ import annotations
 
 

@@ -8,6 +8,7 @@
 Ids match `[A-Za-z0-9_-]{1,64}`, so they can never contain the key separators or the
 wildcards `*`, `$`, `?`, `#`.
 """
+
 from __future__ import annotations
 
 import re

@@ -4,6 +4,7 @@ Construction checks what is cheap and structural (ids, counts, dimensions); the 
 checks on mixtures (finite, positive definite, normalised) run in the codec, on both sides.
 Classes that hold arrays compare by identity (eq=False): numpy arrays have no single truth value.
 """
+
 from __future__ import annotations
 
 import math
@@ -195,8 +196,9 @@ class MapReply:
         origin = np.asarray(self.origin, dtype=np.float64)
         probabilities = np.asarray(self.probabilities, dtype=np.float32)
         if origin.shape not in ((2,), (3,)) or probabilities.ndim != origin.shape[0]:
-            raise ProtocolError("shape",
-                                f"origin {origin.shape} and grid {probabilities.shape} must share dimension 2 or 3")
+            raise ProtocolError(
+                "shape", f"origin {origin.shape} and grid {probabilities.shape} must share dimension 2 or 3"
+            )
         if probabilities.size == 0:
             raise ProtocolError("shape", f"every extent must be >= 1, got {probabilities.shape}")
         if not np.isfinite(origin).all():

@@ -6,6 +6,7 @@ its smallest three components) and the weight on a log scale. A covariance is re
 R diag(exp(2 s)) R^T, so every decoded covariance is symmetric positive definite whatever
 the bits say.
 """
+
 from __future__ import annotations
 
 import math
@@ -56,8 +57,10 @@ def stream_bytes(n_components: int, dim: int) -> int:
 
 
 def pack_records(columns: list[np.ndarray], widths: list[int]) -> bytes:
-    bits = [(col.astype(np.uint64)[:, None] >> np.arange(w, dtype=np.uint64)) & np.uint64(1)
-            for col, w in zip(columns, widths)]
+    bits = [
+        (col.astype(np.uint64)[:, None] >> np.arange(w, dtype=np.uint64)) & np.uint64(1)
+        for col, w in zip(columns, widths)
+    ]
     return np.packbits(np.concatenate(bits, axis=1).astype(np.uint8).reshape(-1), bitorder="little").tobytes()
 
 
@@ -67,12 +70,13 @@ def unpack_records(data: bytes, n_records: int, widths: list[int], field: str) -
     if len(data) != expected:
         raise ProtocolError(field, f"expected {expected} bytes for {n_records} components, got {len(data)}")
     bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8), bitorder="little")
-    if bits[n_records * total:].any():  # the pad up to a whole byte is zero, so a stream is canonical
+    if bits[n_records * total :].any():  # the pad up to a whole byte is zero, so a stream is canonical
         raise ProtocolError(field, "padding bits after the last component must be zero")
     records = bits[: n_records * total].reshape(n_records, total).astype(np.int64)
     offsets = np.cumsum([0] + list(widths))
-    return [records[:, lo:lo + w] @ (np.int64(1) << np.arange(w, dtype=np.int64))
-            for lo, w in zip(offsets[:-1], widths)]
+    return [
+        records[:, lo : lo + w] @ (np.int64(1) << np.arange(w, dtype=np.int64)) for lo, w in zip(offsets[:-1], widths)
+    ]
 
 
 # --- rotations, vectorised over components
@@ -83,28 +87,62 @@ def _quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     diagonal term so no component is found by dividing by a tiny number (Shepperd)."""
     m = R
     trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    candidates = np.stack([
-        np.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], axis=1),
-        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                  m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], axis=1),
-        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0],
-                  1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], axis=1),
-        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0],
-                  m[:, 1, 2] + m[:, 2, 1], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1),
-    ], axis=1)  # (K, 4 branches, 4): branch b is 4 q_b * q, whose entry b is 4 q_b^2
-    diag = np.stack([1 + trace, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                     1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1)
+    candidates = np.stack(
+        [
+            np.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], axis=1),
+            np.stack(
+                [
+                    m[:, 2, 1] - m[:, 1, 2],
+                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                    m[:, 0, 1] + m[:, 1, 0],
+                    m[:, 0, 2] + m[:, 2, 0],
+                ],
+                axis=1,
+            ),
+            np.stack(
+                [
+                    m[:, 0, 2] - m[:, 2, 0],
+                    m[:, 0, 1] + m[:, 1, 0],
+                    1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                    m[:, 1, 2] + m[:, 2, 1],
+                ],
+                axis=1,
+            ),
+            np.stack(
+                [
+                    m[:, 1, 0] - m[:, 0, 1],
+                    m[:, 0, 2] + m[:, 2, 0],
+                    m[:, 1, 2] + m[:, 2, 1],
+                    1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
+                ],
+                axis=1,
+            ),
+        ],
+        axis=1,
+    )  # (K, 4 branches, 4): branch b is 4 q_b * q, whose entry b is 4 q_b^2
+    diag = np.stack(
+        [
+            1 + trace,
+            1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+            1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+            1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
+        ],
+        axis=1,
+    )
     q = candidates[np.arange(len(R)), np.argmax(diag, axis=1)]
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
-    ], axis=1)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+        ],
+        axis=1,
+    )
 
 
 # --- the encoding
@@ -149,13 +187,13 @@ def dequantize(bounds: np.ndarray, stream: bytes, n_components: int, dim: int, f
     lo, hi = bounds[:dim].astype(np.float64), bounds[dim:].astype(np.float64)
     mean_codes = np.stack(columns[:dim], axis=1)
     means = lo + mean_codes * ((hi - lo) / (2 ** MEAN_BITS[dim] - 1))
-    log_std = LOG_STD_MIN + np.stack(columns[dim:2 * dim], axis=1) * LOG_STD_STEP
+    log_std = LOG_STD_MIN + np.stack(columns[dim : 2 * dim], axis=1) * LOG_STD_STEP
     if dim == 2:
         theta = columns[2 * dim] * (0.5 * np.pi / ANGLE_STEPS)
         c, s = np.cos(theta), np.sin(theta)
         rotations = np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)
     else:
-        rotations = _dequantize_rotation(columns[2 * dim], np.stack(columns[2 * dim + 1:2 * dim + 4], axis=1))
+        rotations = _dequantize_rotation(columns[2 * dim], np.stack(columns[2 * dim + 1 : 2 * dim + 4], axis=1))
     variances = np.exp(2 * log_std)
     covs = np.einsum("kij,kj,klj->kil", rotations, variances, rotations)
     covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))

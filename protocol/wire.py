@@ -3,6 +3,7 @@
 Wire maps come from an untrusted decoder: values can have any msgpack type, so every read
 states the type it wants. bool is rejected where an int is wanted (in Python it is one).
 """
+
 from __future__ import annotations
 
 import builtins

@@ -7,6 +7,7 @@ the values (`fit`: gmm_core.FitConfig, `reconstruction`: gmm_core.reconstruct.Re
 `GmmapConfig`, in that order of precedence: defaults < file < flags. A bad value is a
 `ConfigError` that names its field, e.g. `fit.max_range: must be a finite number > 0`.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -52,8 +53,10 @@ class GmmapConfig:
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain JSON types, every field included (None where unset)."""
-        return {name: {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(section).items()}
-                for name, section in self.sections().items()}
+        return {
+            name: {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(section).items()}
+            for name, section in self.sections().items()
+        }
 
     def sections(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -73,8 +76,9 @@ def summary(**sections: Any) -> str:
     return json.dumps({name: dataclasses.asdict(section) for name, section in sections.items()}, sort_keys=True)
 
 
-def load_config(path: str | Path | None = None,
-                overrides: Mapping[str, Mapping[str, Any]] | None = None) -> GmmapConfig:
+def load_config(
+    path: str | Path | None = None, overrides: Mapping[str, Mapping[str, Any]] | None = None
+) -> GmmapConfig:
     """Defaults, then the file at `path` (TOML `.toml`, YAML `.yaml`/`.yml`), then `overrides`."""
     config = GmmapConfig()
     if path is not None:
@@ -104,8 +108,10 @@ def read_config_file(path: Path) -> dict[str, Any]:
 def _toml():
     if sys.version_info >= (3, 11):
         import tomllib
+
         return tomllib
     import tomli  # the same parser, for Python 3.10 (a dependency there)
+
     return tomli
 
 

@@ -1,4 +1,5 @@
 """What the machine a service runs on offers it."""
+
 from __future__ import annotations
 
 import os

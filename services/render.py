@@ -15,6 +15,7 @@ decides nothing, and as a veto it would leave almost no column free (Kurt3D at 0
 Probabilities: a column is as occupied as its most occupied voxel or, if none is above 0.5, as free
 as its freest one.
 """
+
 from __future__ import annotations
 
 import io

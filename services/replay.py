@@ -1,4 +1,5 @@
 """`gmmap replay`: a log through fit and reconstruction, offline, as a server would build it."""
+
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
@@ -9,9 +10,9 @@ import numpy as np
 from gmm_core import FitConfig, Grid, ScanModel, fit_scan
 from gmm_core.analytic.evidence_2d import analytic_map_2d
 from gmm_core.occupancy import map_estimate
+from gmm_core.pose import Pose
 from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import scan_seed
-from gmm_core.pose import Pose
 from protocol import ScanMessage, decode, encode
 from services.datasets import RangeScan
 
@@ -30,8 +31,9 @@ class ReplayMap:
 
 def data_extent(scans: Sequence[RangeScan], max_range: float, margin: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Box around every sensor origin and beam end (no-returns cut at max_range), plus a margin."""
-    ends = [np.concatenate([s.pose.apply(s.hits), s.pose.apply(s.no_return * max_range), s.pose.t[None]])
-            for s in scans]
+    ends = [
+        np.concatenate([s.pose.apply(s.hits), s.pose.apply(s.no_return * max_range), s.pose.t[None]]) for s in scans
+    ]
     points = np.concatenate(ends)
     return points.min(axis=0) - margin, points.max(axis=0) + margin
 
@@ -49,8 +51,9 @@ def through_wire(model: ScanModel, encoding: str) -> ScanModel:
     return decode(encode(message, encoding), expect=ScanMessage).model
 
 
-def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
-              progress: Callable[[int], None] | None = None) -> list[ScanModel]:
+def fit_scans(
+    scans: Sequence[RangeScan], config: FitConfig, progress: Callable[[int], None] | None = None
+) -> list[ScanModel]:
     models = []
     for scan in scans:
         models.append(fit_scan(scan.hits, scan.no_return, config))
@@ -59,10 +62,18 @@ def fit_scans(scans: Sequence[RangeScan], config: FitConfig,
     return models
 
 
-def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[float] | None = None,
-           method: str = "mc", config: FitConfig = FitConfig(), seed: int = 0,
-           reconstruction: ReconstructionConfig = ReconstructionConfig(), encoding: str = "q",
-           progress: Callable[[str, int, int], Callable[[int], None]] | None = None) -> ReplayMap:
+def replay(
+    scans: Sequence[RangeScan],
+    *,
+    resolution: float,
+    bbox: Sequence[float] | None = None,
+    method: str = "mc",
+    config: FitConfig = FitConfig(),
+    seed: int = 0,
+    reconstruction: ReconstructionConfig = ReconstructionConfig(),
+    encoding: str = "q",
+    progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
+) -> ReplayMap:
     """The occupancy map of `scans` on the grid of `bbox` (min corner exact) or the data's extent.
 
     Every scan model passes through the wire `encoding` ("q", "f32" or "none") first, so the
@@ -84,8 +95,9 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
     grid = Grid.from_bbox(lo, hi, resolution)
     tick = (lambda stage, total: progress(stage, total)) if progress else (lambda stage, total: None)
     if method == "raw":
-        hits, misses = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in scans], config.max_range,
-                                   tick("trace", len(scans)))
+        hits, misses = count_beams(
+            grid, [(s.hits, s.no_return, s.pose) for s in scans], config.max_range, tick("trace", len(scans))
+        )
         components = 0
     else:
         models = [through_wire(m, encoding) for m in fit_scans(scans, config, tick("fit", len(scans)))]
@@ -94,6 +106,10 @@ def replay(scans: Sequence[RangeScan], *, resolution: float, bbox: Sequence[floa
         hits, misses = analytic_map_2d([(m, s.pose) for m, s in zip(models, scans)], grid)
         hits, misses = hits.astype(np.float32), misses.astype(np.float32)
     elif method == "mc":
-        hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
-                                   samples_per_cell=reconstruction.samples_per_cell, progress=tick("trace", len(scans)))
+        hits, misses = reconstruct(
+            grid,
+            [(m, s.pose, scan_seed(seed, s.index)) for m, s in zip(models, scans)],
+            samples_per_cell=reconstruction.samples_per_cell,
+            progress=tick("trace", len(scans)),
+        )
     return ReplayMap(grid, hits, misses, map_estimate(hits, misses, reconstruction.prior), len(scans), components)

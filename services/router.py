@@ -1,4 +1,5 @@
 """`gmmap router`: a Zenoh router from the Python library, for setups without `zenohd`."""
+
 from __future__ import annotations
 
 import signal

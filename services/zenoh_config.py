@@ -4,6 +4,7 @@ The library's defaults listen on every interface and scout by multicast; here no
 discovered implicitly: endpoints come from the command line or a config file, and scouting
 stays off unless that file turns it on (docs/ARCHITECTURE.md, "Zenoh").
 """
+
 from __future__ import annotations
 
 import json
@@ -15,8 +16,9 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # where a server or router listens, and
 RECONNECT_MS = 500  # peers retry lost links every 0.5 s (library default backs off to 4 s)
 
 
-def zenoh_config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (),
-                 config_file: str | None = None) -> zenoh.Config:
+def zenoh_config(
+    mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (), config_file: str | None = None
+) -> zenoh.Config:
     """A Config in `mode` ("peer", "router" or "client") with explicit endpoints.
 
     Robot agents are clients: a leaf that reaches the fleet through one server or router. (Peers
@@ -43,8 +45,10 @@ def zenoh_config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str
         default("connect/timeout_ms", -1)
         default("connect/exit_on_failure", False)
     for side in ("connect", "listen"):
-        default(f"{side}/retry", {"period_init_ms": RECONNECT_MS, "period_max_ms": RECONNECT_MS,
-                                  "period_increase_factor": 1.0})
+        default(
+            f"{side}/retry",
+            {"period_init_ms": RECONNECT_MS, "period_max_ms": RECONNECT_MS, "period_increase_factor": 1.0},
+        )
     if listen:
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     elif unset("listen/endpoints"):

@@ -2,6 +2,7 @@
 
 Tests under tests/integration/ (processes, Zenoh, HTTP, Chromium, compose) are marked
 `integration`: `pytest -m "not integration"` runs the unit tests alone."""
+
 from __future__ import annotations
 
 from pathlib import Path

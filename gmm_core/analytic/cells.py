@@ -1,6 +1,7 @@
 """Analytic evidence and occupancy at given cells (squares in 2D, cubes in 3D), without a grid:
 one component (component_evidence), scan models with poses (scan_evidence, occupancy_at_cells).
 Every component is tested against every cell, after the cone culling."""
+
 from __future__ import annotations
 
 import math
@@ -15,8 +16,9 @@ from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
 
 
 @njit(cache=True, parallel=True)
-def _evidence_at_cells(centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts,
-                       axes, dist_means, reaches, half_angles):
+def _evidence_at_cells(
+    centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means, reaches, half_angles
+):
     """Expected hits and misses at each cell from every component that may reach it."""
     n_cells, dim = centers.shape
     hits = np.zeros(n_cells)
@@ -30,11 +32,13 @@ def _evidence_at_cells(centers, half, means, covs, isos, evals, evecs, sensors, 
             if not may_reach(cell, rho, sensors[k], means[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
                 continue
             if dim == 2:
-                h, m = cell_evidence_2d(means[k], covs[k], isos[k], sensors[k], max_range[k],
-                                        cell[0], cell[1], half, fx, fy)
+                h, m = cell_evidence_2d(
+                    means[k], covs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], half, fx, fy
+                )
             else:
-                h, m = cell_evidence_3d(means[k], evals[k], evecs[k], isos[k], sensors[k], max_range[k],
-                                        cell[0], cell[1], cell[2], half)
+                h, m = cell_evidence_3d(
+                    means[k], evals[k], evecs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], cell[2], half
+                )
             hits[c] += counts[k] * h
             misses[c] += counts[k] * m
     return hits, misses
@@ -50,8 +54,9 @@ def as_cells(centers, cell_size: float, dim: int) -> tuple[np.ndarray, float]:
     return centers, 0.5 * float(cell_size)
 
 
-def component_evidence(mean, cov, origin, centers, cell_size: float, *,
-                       max_range: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def component_evidence(
+    mean, cov, origin, centers, cell_size: float, *, max_range: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """Hits and misses one Gaussian component gives each cell, as fractions of its mass.
 
     mean (d,), cov (d, d), origin (d,): the sensor; centers (M, d), cell_size: axis-aligned
@@ -65,8 +70,9 @@ def component_evidence(mean, cov, origin, centers, cell_size: float, *,
     cov, evals, evecs, isos = isotropic_maps(cov)
     sensor = np.asarray(origin, dtype=np.float64).reshape(1, -1)
     everywhere = (np.ones_like(mean), np.zeros(1), np.full(1, np.inf), np.full(1, np.pi))  # no culling
-    return _evidence_at_cells(centers, half, mean, cov, isos, evals, evecs, sensor, np.array([bool(max_range)]),
-                              np.ones(1), *everywhere)
+    return _evidence_at_cells(
+        centers, half, mean, cov, isos, evals, evecs, sensor, np.array([bool(max_range)]), np.ones(1), *everywhere
+    )
 
 
 def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -76,12 +82,22 @@ def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndar
     dim = models_with_poses[0][0].dim if models_with_poses else np.shape(centers)[-1]
     centers, half = as_cells(centers, cell_size, dim)
     comp = world_components(models_with_poses, dim)
-    return _evidence_at_cells(centers, half, comp.means, comp.covs, comp.isos, comp.evals, comp.evecs,
-                              comp.sensors, comp.max_range, comp.counts, *comp.cone())
+    return _evidence_at_cells(
+        centers,
+        half,
+        comp.means,
+        comp.covs,
+        comp.isos,
+        comp.evals,
+        comp.evecs,
+        comp.sensors,
+        comp.max_range,
+        comp.counts,
+        *comp.cone(),
+    )
 
 
-def occupancy_at_cells(models_with_poses, centers, cell_size: float,
-                       prior: float = DEFAULT_PRIOR) -> np.ndarray:
+def occupancy_at_cells(models_with_poses, centers, cell_size: float, prior: float = DEFAULT_PRIOR) -> np.ndarray:
     """p(occupied) of each cell, Eq. 11, from the analytic evidence of scan models with world poses.
 
     models_with_poses: list of (ScanModel, Pose); centers (M, d); cell_size: side of the square

@@ -1,6 +1,7 @@
 """What the 2D and 3D evidence share: the components of scan models in the world frame (Eq. 2)
 with their isotropic maps (Sec. III-C), the cell that holds a component's sensor, and the cone
 culling that decides which cells a component may reach."""
+
 from __future__ import annotations
 
 import math
@@ -31,8 +32,7 @@ def may_reach(cell, rho, sensor, mean, axis, dist_mean, reach, half_angle):
     of radius `reach` around the component's mean: it must meet their box, and the cone from the
     sensor over the ball, before its far side. Cheap culling."""
     for i in range(cell.shape[0]):
-        if (cell[i] < min(sensor[i], mean[i] - reach) - rho
-                or cell[i] > max(sensor[i], mean[i] + reach) + rho):
+        if cell[i] < min(sensor[i], mean[i] - reach) - rho or cell[i] > max(sensor[i], mean[i] + reach) + rho:
             return False
     dist_sq = 0.0
     along = 0.0
@@ -89,13 +89,21 @@ def world_components(models_with_poses, dim: int) -> Components:
         sensor = pose.apply(model.origin[None])[0]
         for mixture, is_free in ((model.occupied, False), (model.free, True)):
             world = mixture.transformed(pose)
-            parts.append((world.means, world.covariances, np.broadcast_to(sensor, world.means.shape),
-                          world.support * world.weights, np.full(world.n_components, is_free)))
+            parts.append(
+                (
+                    world.means,
+                    world.covariances,
+                    np.broadcast_to(sensor, world.means.shape),
+                    world.support * world.weights,
+                    np.full(world.n_components, is_free),
+                )
+            )
     means, covs, sensors, counts, max_range = (np.ascontiguousarray(np.concatenate(p)) for p in zip(*parts))
     covs, evals, evecs, isos = isotropic_maps(covs)
     dist_means = np.linalg.norm(means - sensors, axis=1)
     axes = np.ascontiguousarray((means - sensors) / np.maximum(dist_means, 1e-300)[:, None])
     reaches = REACH_SIGMA * np.sqrt(evals[:, -1])
     half_angles = np.arcsin(np.minimum(reaches / np.maximum(dist_means, 1e-300), 1.0))
-    return Components(means, covs, evals, evecs, isos, sensors, counts, max_range, axes, dist_means,
-                      reaches, half_angles)
+    return Components(
+        means, covs, evals, evecs, isos, sensors, counts, max_range, axes, dist_means, reaches, half_angles
+    )

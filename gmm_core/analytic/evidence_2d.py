@@ -5,6 +5,7 @@ Misses in the isotropic frame (component N(0, I), rays stay rays): Eq. 5 where i
 1e-10 (the cell well in front of the component, the sensor well outside it); elsewhere exactly,
 as the mass of the cell's wedge minus that of the convex hull of sensor and cell.
 """
+
 from __future__ import annotations
 
 import math
@@ -150,8 +151,23 @@ def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
 
 
 @njit(cache=True, parallel=True)
-def _map_2d(grid_origin, resolution, nx, ny, means, covs, isos, sensors, max_range, counts,
-            axes, dist_means, reaches, half_angles, n_chunks):
+def _map_2d(
+    grid_origin,
+    resolution,
+    nx,
+    ny,
+    means,
+    covs,
+    isos,
+    sensors,
+    max_range,
+    counts,
+    axes,
+    dist_means,
+    reaches,
+    half_angles,
+    n_chunks,
+):
     """Expected hits and misses on a 2D grid: each component visits the cells of its cone's box.
 
     Components are dealt round-robin to n_chunks workers, each adding into its own copy of the
@@ -196,5 +212,17 @@ def analytic_map_2d(models_with_poses, grid: Grid) -> tuple[np.ndarray, np.ndarr
     ny, nx = grid.array_shape
     budget = 512 * 2**20  # bytes for the per-worker copies of the counts
     n_chunks = int(max(1, min(4 * numba.get_num_threads(), budget // (16 * nx * ny))))
-    return _map_2d(grid.origin, grid.resolution, nx, ny, comp.means, comp.covs, comp.isos, comp.sensors,
-                   comp.max_range, comp.counts, *comp.cone(), n_chunks)
+    return _map_2d(
+        grid.origin,
+        grid.resolution,
+        nx,
+        ny,
+        comp.means,
+        comp.covs,
+        comp.isos,
+        comp.sensors,
+        comp.max_range,
+        comp.counts,
+        *comp.cone(),
+        n_chunks,
+    )

@@ -8,6 +8,7 @@ Eq. 7; error up to 0.012 of the component's mass); near it exactly, as the mass 
 cone from the sensor over the cube beyond the cube's entry (a convex polyhedron) minus the
 cube's own, by the same slices as the hits.
 """
+
 from __future__ import annotations
 
 import math
@@ -87,9 +88,11 @@ def _cube_halfspaces(corners, sensor, normals, offsets):
                 norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
                 if norm < 1e-9 * (corners[7, 0] - corners[0, 0]) ** 2:
                     continue  # the edge's line runs through the sensor: its neighbours bound the cone
-                inward = (g0 * (0.5 * (corners[0, 0] + corners[7, 0]) - sensor[0])  # towards the centre
-                          + g1 * (0.5 * (corners[0, 1] + corners[7, 1]) - sensor[1])
-                          + g2 * (0.5 * (corners[0, 2] + corners[7, 2]) - sensor[2]))
+                inward = (
+                    g0 * (0.5 * (corners[0, 0] + corners[7, 0]) - sensor[0])  # towards the centre
+                    + g1 * (0.5 * (corners[0, 1] + corners[7, 1]) - sensor[1])
+                    + g2 * (0.5 * (corners[0, 2] + corners[7, 2]) - sensor[2])
+                )
                 scale = (1.0 if inward >= 0.0 else -1.0) / norm
                 normals[n, 0], normals[n, 1], normals[n, 2] = g0 * scale, g1 * scale, g2 * scale
                 offsets[n] = _dot3(normals[n], sensor)
@@ -189,8 +192,9 @@ def _convex_hull(xs, ys, n, hull):
     order = np.arange(n)
     for i in range(1, n):  # insertion sort by (x, y)
         j = i
-        while j > 0 and (xs[order[j - 1]] > xs[order[j]]
-                         or (xs[order[j - 1]] == xs[order[j]] and ys[order[j - 1]] > ys[order[j]])):
+        while j > 0 and (
+            xs[order[j - 1]] > xs[order[j]] or (xs[order[j - 1]] == xs[order[j]] and ys[order[j - 1]] > ys[order[j]])
+        ):
             order[j - 1], order[j] = order[j], order[j - 1]
             j -= 1
     m = 0
@@ -300,8 +304,10 @@ def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, hal
         return 0.0, 0.0  # behind the component
     if p > NEGLIGIBLE_SIGMA + 1.0:
         b = -q / p
-        if dist > radius and (math.acos(min(1.0, max(-1.0, _dot3(centre, b) / dist)))
-                              > math.asin(radius / dist) + math.asin(NEGLIGIBLE_SIGMA / p)):
+        if dist > radius and (
+            math.acos(min(1.0, max(-1.0, _dot3(centre, b) / dist)))
+            > math.asin(radius / dist) + math.asin(NEGLIGIBLE_SIGMA / p)
+        ):
             return 0.0, 0.0  # the cube's cone passes the component by
         if all_front and r_far < p - NEGLIGIBLE_SIGMA:
             return 0.0, _shadow_mass_eq9(ws, b, p)  # well in front: the paper's Eq. 9

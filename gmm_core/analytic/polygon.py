@@ -2,6 +2,7 @@
 plane, one bivariate normal orthant per corner), and the pieces of it that the 2D wedge uses.
 numba kernels. (The paper's approximate polygon mass, Eq. 6-9, serves the 3D path alone and
 lives in evidence_3d.)"""
+
 from __future__ import annotations
 
 import math

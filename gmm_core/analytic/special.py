@@ -1,5 +1,6 @@
 """Special functions of the standard normal for the analytic evidence: tail Q(x), erf differences,
 the lower quantile Phi^-1 and the bivariate normal orthant (Genz). numba kernels, float64."""
+
 from __future__ import annotations
 
 import math
@@ -39,17 +40,55 @@ def norm_ppf_lower(t):
     """Phi^-1(t) for 0 < t <= 0.5: Acklam's rational approximation and one Halley step."""
     if t < 0.02425:
         q = math.sqrt(-2.0 * math.log(t))
-        x = ((((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838e+00) * q
-                - 2.549732539343734e+00) * q + 4.374664141464968e+00) * q + 2.938163982698783e+00)
-             / ((((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996e+00) * q
-                 + 3.754408661907416e+00) * q + 1.0))
+        x = (
+            (
+                (
+                    ((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838e00) * q
+                    - 2.549732539343734e00
+                )
+                * q
+                + 4.374664141464968e00
+            )
+            * q
+            + 2.938163982698783e00
+        ) / (
+            (
+                ((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996e00) * q
+                + 3.754408661907416e00
+            )
+            * q
+            + 1.0
+        )
     else:
         q = t - 0.5
         r = q * q
-        x = ((((((-3.969683028665376e+01 * r + 2.209460984245205e+02) * r - 2.759285104469687e+02) * r
-                + 1.383577518672690e+02) * r - 3.066479806614716e+01) * r + 2.506628277459239e+00) * q
-             / (((((-5.447609879822406e+01 * r + 1.615858368580409e+02) * r - 1.556989798598866e+02) * r
-                  + 6.680131188771972e+01) * r - 1.328068155288572e+01) * r + 1.0))
+        x = (
+            (
+                (
+                    (
+                        ((-3.969683028665376e01 * r + 2.209460984245205e02) * r - 2.759285104469687e02) * r
+                        + 1.383577518672690e02
+                    )
+                    * r
+                    - 3.066479806614716e01
+                )
+                * r
+                + 2.506628277459239e00
+            )
+            * q
+            / (
+                (
+                    (
+                        ((-5.447609879822406e01 * r + 1.615858368580409e02) * r - 1.556989798598866e02) * r
+                        + 6.680131188771972e01
+                    )
+                    * r
+                    - 1.328068155288572e01
+                )
+                * r
+                + 1.0
+            )
+        )
     e = 0.5 * math.erfc(-x / SQRT2) - t
     u = e * SQRT_2PI * math.exp(0.5 * x * x)
     return x - u / (1.0 + 0.5 * x * u)
@@ -85,12 +124,14 @@ def bvn_upper(h, k, r):
         bs = (h - k) ** 2
         c = (4.0 - hk) / 8.0
         d = (12.0 - hk) / 16.0
-        total = a * math.exp(-0.5 * (bs / a2 + hk)) * (
-            1.0 - c * (bs - a2) * (1.0 - d * bs / 5.0) / 3.0 + c * d * a2 * a2 / 5.0)
+        total = (
+            a
+            * math.exp(-0.5 * (bs / a2 + hk))
+            * (1.0 - c * (bs - a2) * (1.0 - d * bs / 5.0) / 3.0 + c * d * a2 * a2 / 5.0)
+        )
         if hk > -160.0:
             b = math.sqrt(bs)
-            total -= (math.exp(-0.5 * hk) * SQRT_2PI * norm_sf(b / a) * b
-                      * (1.0 - c * bs * (1.0 - d * bs / 5.0) / 3.0))
+            total -= math.exp(-0.5 * hk) * SQRT_2PI * norm_sf(b / a) * b * (1.0 - c * bs * (1.0 - d * bs / 5.0) / 3.0)
         a *= 0.5
         for i in range(xs.shape[0]):
             for sign in (1.0, -1.0):
@@ -98,8 +139,12 @@ def bvn_upper(h, k, r):
                 rs = math.sqrt(1.0 - x2)
                 asr = -0.5 * (bs / x2 + hk)
                 if asr > -100.0:
-                    total += a * ws[i] * math.exp(asr) * (
-                        math.exp(-hk * x2 / (2.0 * (1.0 + rs) ** 2)) / rs - (1.0 + c * x2 * (1.0 + d * x2)))
+                    total += (
+                        a
+                        * ws[i]
+                        * math.exp(asr)
+                        * (math.exp(-hk * x2 / (2.0 * (1.0 + rs) ** 2)) / rs - (1.0 + c * x2 * (1.0 + d * x2)))
+                    )
         total = -total / (2.0 * math.pi)
     if r > 0.0:
         return total + norm_sf(max(h, k))

@@ -8,6 +8,7 @@ slow but alive is not buried in copies of what it is still storing. The Zenoh se
 mode) opens in the background: a robot out of reach keeps fitting and filling its outbox. A
 finite source ends when the outbox is empty.
 """
+
 from __future__ import annotations
 
 import logging
@@ -21,8 +22,18 @@ from pathlib import Path
 import zenoh
 
 from gmm_core import FitConfig, fit_scan
-from protocol import (Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode,
-                      poses_key, scan_key)
+from protocol import (
+    Ack,
+    PoseGraphUpdate,
+    ProtocolError,
+    Rejection,
+    ScanMessage,
+    ack_key,
+    decode,
+    encode,
+    poses_key,
+    scan_key,
+)
 from services.config import summary
 from services.zenoh_config import zenoh_config
 
@@ -131,8 +142,13 @@ class Agent:
             return
         if isinstance(answer, Rejection):  # refused for good: stop resending, report at the end
             if self.outbox.reject(answer.kind, answer.ids, answer.reason, answer.detail):
-                log.error("the server refused %d message(s) of kind %s: %s: %s", len(answer.ids), answer.kind,
-                          answer.reason, answer.detail)
+                log.error(
+                    "the server refused %d message(s) of kind %s: %s: %s",
+                    len(answer.ids),
+                    answer.kind,
+                    answer.reason,
+                    answer.detail,
+                )
             self.refused = answer
         else:
             for round_trip in self.outbox.acknowledge(answer.kind, answer.ids):
@@ -231,22 +247,32 @@ def run_agent(o: AgentConfig, fit: FitConfig = FitConfig()) -> int:
         published = time.perf_counter()
         pending = agent.wait_acknowledged(o.timeout)
         if pending:
-            print(f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; "
-                  f"they stay in {outbox.path} and are resent by the next run "
-                  f"(is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; "
+                f"they stay in {outbox.path} and are resent by the next run "
+                f"(is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)",
+                file=sys.stderr,
+                flush=True,
+            )
             return 1
         refused = outbox.rejected()
         if refused:
-            print(f"gmmap agent {o.robot}: the server refused {len(refused)} messages for good "
-                  f"({refused[-1][2]}: {refused[-1][3]}); they are not stored and not resent "
-                  f"(listed in table `rejected` of {outbox.path}); {agent.unsent} scans were not published",
-                  file=sys.stderr, flush=True)
+            print(
+                f"gmmap agent {o.robot}: the server refused {len(refused)} messages for good "
+                f"({refused[-1][2]}: {refused[-1][3]}); they are not stored and not resent "
+                f"(listed in table `rejected` of {outbox.path}); {agent.unsent} scans were not published",
+                file=sys.stderr,
+                flush=True,
+            )
             return 3
         resumed = f" ({agent.resumed} of them from a previous run: resumed)" if agent.resumed else ""
-        print(f"gmmap agent {o.robot}: {len(nodes)} scans{resumed} and {updates} pose-graph updates acknowledged; "
-              f"published after {published - started:.1f} s, all acknowledged after "
-              f"{time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+        print(
+            f"gmmap agent {o.robot}: {len(nodes)} scans{resumed} and {updates} pose-graph updates acknowledged; "
+            f"published after {published - started:.1f} s, all acknowledged after "
+            f"{time.perf_counter() - started:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         return 0
     finally:
         agent.close()

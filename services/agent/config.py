@@ -1,4 +1,5 @@
 """The `agent` section of the configuration: one robot's agent (its fit is the `fit` section)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

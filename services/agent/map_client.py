@@ -1,4 +1,5 @@
 """Fetch the shared map over Zenoh: what a robot asks the map server's occupancy queryable."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -12,8 +13,15 @@ class MapQueryError(RuntimeError):
     """The server answered with an error, or nobody answered in time."""
 
 
-def query_occupancy(session: zenoh.Session, fleet: str, lo: Sequence[float], hi: Sequence[float],
-                    resolution: float, robots: Sequence[str] | None = None, timeout: float = 10.0) -> MapReply:
+def query_occupancy(
+    session: zenoh.Session,
+    fleet: str,
+    lo: Sequence[float],
+    hi: Sequence[float],
+    resolution: float,
+    robots: Sequence[str] | None = None,
+    timeout: float = 10.0,
+) -> MapReply:
     """The server's occupancy grid of the box [lo, hi] at `resolution` (MapReply)."""
     query = MapQuery(fleet, lo, hi, resolution, tuple(robots) if robots is not None else None)
     raw = query_bytes(session, fleet, encode(query), timeout)

@@ -7,6 +7,7 @@ what a restarted agent skips), `rejected` what the server refused for good (a Re
 resent, reported), and `meta` the next pose-graph revision, which must keep increasing across
 restarts.
 """
+
 from __future__ import annotations
 
 import sqlite3
@@ -67,8 +68,10 @@ class Outbox:
 
     def mark_sent(self, items: list[tuple[str, int]]) -> None:
         with self._lock, self._db:
-            self._db.executemany("UPDATE outbox SET sent = ?, attempts = attempts + 1 WHERE kind = ? AND id = ?",
-                                 [(time.time(), kind, ident) for kind, ident in items])
+            self._db.executemany(
+                "UPDATE outbox SET sent = ?, attempts = attempts + 1 WHERE kind = ? AND id = ?",
+                [(time.time(), kind, ident) for kind, ident in items],
+            )
 
     def acknowledge(self, kind: str, ids: tuple[int, ...]) -> list[float]:
         """Drop acknowledged messages; returns the round-trip times (s) of those sent exactly once.
@@ -80,8 +83,9 @@ class Outbox:
         with self._lock, self._db:
             round_trips = []
             for i in ids:
-                row = self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts",
-                                       (kind, i)).fetchone()
+                row = self._db.execute(
+                    "DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts", (kind, i)
+                ).fetchone()
                 if row is not None and row[1] == 1:
                     round_trips.append(now - row[0])
             self._db.executemany("INSERT OR IGNORE INTO acked VALUES (?, ?, ?)", [(kind, i, now) for i in ids])
@@ -92,10 +96,12 @@ class Outbox:
         """Drop messages the server refused for good, keeping why; returns how many were still held."""
         now = time.time()
         with self._lock, self._db:
-            removed = sum(self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ?", (kind, i)).rowcount
-                          for i in ids)
-            self._db.executemany("INSERT OR REPLACE INTO rejected VALUES (?, ?, ?, ?, ?)",
-                                 [(kind, i, reason, detail, now) for i in ids])
+            removed = sum(
+                self._db.execute("DELETE FROM outbox WHERE kind = ? AND id = ?", (kind, i)).rowcount for i in ids
+            )
+            self._db.executemany(
+                "INSERT OR REPLACE INTO rejected VALUES (?, ?, ?, ?, ?)", [(kind, i, reason, detail, now) for i in ids]
+            )
         return removed
 
     def rejected(self) -> list[tuple[str, int, str, str]]:
@@ -119,7 +125,8 @@ class Outbox:
             return self._db.execute(
                 "SELECT kind, id, key, raw FROM outbox WHERE attempts = 0 OR "
                 "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? ORDER BY sent, kind DESC, id",
-                (timeout, MAX_DOUBLINGS, now)).fetchall()
+                (timeout, MAX_DOUBLINGS, now),
+            ).fetchall()
 
     def pending(self) -> int:
         with self._lock:

@@ -11,6 +11,7 @@ id is the scan's index in the log and the log's pose is final.
 the robot's own drifting estimate as the published pose and the true pose as the corrected
 one; the agent's pose-graph updates then play the loop closures, every `update_every` scans.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -35,7 +36,7 @@ class Node:
 
 
 def parse_source(text: str) -> tuple[str | None, str]:
-    """"carmen:PATH" -> ("carmen", PATH); a bare path leaves the format to be guessed (None)."""
+    """ "carmen:PATH" -> ("carmen", PATH); a bare path leaves the format to be guessed (None)."""
     fmt, sep, path = text.partition(":")
     if sep and fmt in SOURCE_FORMATS:
         return fmt, path
@@ -43,7 +44,7 @@ def parse_source(text: str) -> tuple[str | None, str]:
 
 
 def parse_slice(text: str | None) -> slice:
-    """"A:B" (either side may be empty) -> slice(A, B)."""
+    """ "A:B" (either side may be empty) -> slice(A, B)."""
     if not text:
         return slice(None)
     start, sep, stop = text.partition(":")
@@ -86,15 +87,22 @@ def simulated_nodes(source: str, scans: str | None, rate: float, update_every: i
     sim = SimSource.parse(source)
     span = parse_slice(scans)
     if span.stop is None or not 0 <= (span.start or 0) < span.stop:
-        raise ValueError("--scans: a sim source needs A:B with 0 <= A < B, the scans of its run to publish "
-                         "(0:300 is 60 s at 5 Hz)")
+        raise ValueError(
+            "--scans: a sim source needs A:B with 0 <= A < B, the scans of its run to publish (0:300 is 60 s at 5 Hz)"
+        )
     span = range(span.start or 0, span.stop)
     fleet = shared_fleet(sim.world, sim.robots, span.stop, rate or DEFAULT_RATE, sim.seed)
     return SimulatedNodes(fleet, sim.index, span, update_every)
 
 
-def load_nodes(source: str, corrections: str | None = None, scans: str | None = None, *, rate: float = 0.0,
-               update_every: int | None = None) -> list[Node] | SimulatedNodes:
+def load_nodes(
+    source: str,
+    corrections: str | None = None,
+    scans: str | None = None,
+    *,
+    rate: float = 0.0,
+    update_every: int | None = None,
+) -> list[Node] | SimulatedNodes:
     """The nodes of a log (a list), or of a simulated robot (simulated as iterated)."""
     if is_simulated(source):
         if corrections is not None:

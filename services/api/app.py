@@ -4,6 +4,7 @@ Endpoints that reconstruct occupancy or read the fleet map are plain `def` funct
 runs them in its threadpool, so CPU-bound reconstruction (and waiting for the map's lock) never
 blocks the event loop. Every bad parameter is answered with JSON and a 4xx code naming it.
 """
+
 from __future__ import annotations
 
 import io
@@ -69,9 +70,13 @@ def _range(lo: float, hi: float) -> dict:
 class PointsBody(BaseModel):
     model_config = ConfigDict(strict=True)  # JSON numbers only: no true for 1.0, no "0.1" for 0.1
 
-    points: list[list[float]] = Field(json_schema_extra={
-        "minItems": 1, "maxItems": params.MAX_POINTS,
-        "items": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 3}})
+    points: list[list[float]] = Field(
+        json_schema_extra={
+            "minItems": 1,
+            "maxItems": params.MAX_POINTS,
+            "items": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 3},
+        }
+    )
     resolution: float = Field(**_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION))
     robots: list[str] | None = Field(None, json_schema_extra={"items": {"pattern": params.ID_PATTERN}})
 
@@ -83,9 +88,15 @@ class ErrorBody(BaseModel):
     field: str | None
 
 
-ERRORS = {status: {"model": ErrorBody, "description": text} for status, text in (
-    (400, "The body is not valid JSON"), (404, "No such robot or path"), (413, f"Request body over {MAX_BODY:,} bytes"),
-    (422, "A parameter is missing, malformed or over a limit; `field` names it"))}
+ERRORS = {
+    status: {"model": ErrorBody, "description": text}
+    for status, text in (
+        (400, "The body is not valid JSON"),
+        (404, "No such robot or path"),
+        (413, f"Request body over {MAX_BODY:,} bytes"),
+        (422, "A parameter is missing, malformed or over a limit; `field` names it"),
+    )
+}
 
 
 class EncodedTiles:
@@ -125,13 +136,18 @@ class EncodedTiles:
 
 def allowed_methods(app: FastAPI, scope) -> set[str]:
     """Every method that some route serves at the request's path."""
-    return {m for route in app.router.routes if route.matches(scope)[0] is not Match.NONE
-            for m in getattr(route, "methods", None) or ()}
+    return {
+        m
+        for route in app.router.routes
+        if route.matches(scope)[0] is not Match.NONE
+        for m in getattr(route, "methods", None) or ()
+    }
 
 
 def error(status: int, field: str | None, message: str, headers=None) -> JSONResponse:
-    return JSONResponse({"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status,
-                        headers=headers)
+    return JSONResponse(
+        {"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status, headers=headers
+    )
 
 
 def create_app(state, *, cors_origins: list[str] | None = None, default_variance: float = DEFAULT_VARIANCE) -> FastAPI:
@@ -141,15 +157,23 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
     ask for none (the server's reconstruction.variance).
     """
     default_variance = params.variance(default_variance)
-    app = FastAPI(title="gmmap map server", version="1", description=(
-        "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
-        "Grids follow docs/ARCHITECTURE.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
-        "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."), responses=ERRORS,
-        docs_url=None, redoc_url=None)  # /docs is served below from local files: no CDN on a robot's network
+    app = FastAPI(
+        title="gmmap map server",
+        version="1",
+        description=(
+            "Occupancy of a robot fleet's shared Gaussian-mixture map, at any region and resolution. "
+            "Grids follow docs/ARCHITECTURE.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
+            "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."
+        ),
+        responses=ERRORS,
+        docs_url=None,
+        redoc_url=None,
+    )  # /docs is served below from local files: no CDN on a robot's network
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY)
     if cors_origins:
-        app.add_middleware(CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"],
-                           expose_headers=GRID_HEADERS)
+        app.add_middleware(
+            CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"], expose_headers=GRID_HEADERS
+        )
     fmap = state.fleet_map
     viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(default_variance))
     encoded = EncodedTiles()
@@ -184,31 +208,56 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
             raise ApiError("bbox", str(e)) from None
 
     # -- occupancy ------------------------------------------------------------------------
-    @app.get("/v1/occupancy", summary="Occupancy probabilities of a box at a resolution",
-             responses={200: {"content": {m: {} for m in MEDIA_TYPES.values()},
-                              "description": "npy: float32 probabilities (ny, nx) or (nz, ny, nx); png: 8-bit grey "
-                                             "image seen from above, north up (see `shade`); msgpack: a protocol "
-                                             "MapReply of the probabilities"}})
+    @app.get(
+        "/v1/occupancy",
+        summary="Occupancy probabilities of a box at a resolution",
+        responses={
+            200: {
+                "content": {m: {} for m in MEDIA_TYPES.values()},
+                "description": "npy: float32 probabilities (ny, nx) or (nz, ny, nx); png: 8-bit grey "
+                "image seen from above, north up (see `shade`); msgpack: a protocol "
+                "MapReply of the probabilities",
+            }
+        },
+    )
     def occupancy(
-        bbox: str = Query(..., description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres",
-                          json_schema_extra={"pattern": params.BBOX_PATTERN}),
-        resolution: float = Query(..., description=f"cell size in metres, {params.MIN_RESOLUTION} to "
-                                                    f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells",
-                                  **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION)),
+        bbox: str = Query(
+            ...,
+            description="xmin,ymin,xmax,ymax (2D) or xmin,ymin,zmin,xmax,ymax,zmax (3D), metres",
+            json_schema_extra={"pattern": params.BBOX_PATTERN},
+        ),
+        resolution: float = Query(
+            ...,
+            description=f"cell size in metres, {params.MIN_RESOLUTION} to "
+            f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells",
+            **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION),
+        ),
         format: Format = Query(Format.npy, description="npy, png or msgpack"),
-        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent",
-                                   json_schema_extra={"pattern": params.ROBOTS_PATTERN}),
-        shade: Shade = Query(Shade.classes, description=(
-            "png only. classes: the classification of Eq. 12 (free white, occupied black, unknown grey); 3D maps "
-            "classify each voxel, then a column is occupied if any voxel is, free if none is and some is free, "
-            "else unknown (a voxel in the dead band counts as unseen). probability: grey = 1 - p; a 3D column "
-            "shows its most occupied voxel if one is above 0.5, else its freest")),
-        variance: float = Query(default_variance, description=(
-            f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} (the "
-            f"variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for p <= (1 - sqrt(1 - 4 sigma^2))"
-            f" / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between and at 0.5 (nothing seen); a "
-            f"smaller sigma^2 widens that dead band. Default: the server's (the paper's {DEFAULT_VARIANCE} unless set)"),
-            **_range(params.MIN_VARIANCE, params.MAX_VARIANCE)),
+        robots: str | None = Query(
+            None,
+            description="comma-separated robot ids; every robot when absent",
+            json_schema_extra={"pattern": params.ROBOTS_PATTERN},
+        ),
+        shade: Shade = Query(
+            Shade.classes,
+            description=(
+                "png only. classes: the classification of Eq. 12 (free white, occupied black, unknown grey); 3D maps "
+                "classify each voxel, then a column is occupied if any voxel is, free if none is and some is free, "
+                "else unknown (a voxel in the dead band counts as unseen). probability: grey = 1 - p; a 3D column "
+                "shows its most occupied voxel if one is above 0.5, else its freest"
+            ),
+        ),
+        variance: float = Query(
+            default_variance,
+            description=(
+                f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} "
+                f"(the variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for "
+                f"p <= (1 - sqrt(1 - 4 sigma^2)) / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between "
+                f"and at 0.5 (nothing seen); a smaller sigma^2 widens that dead band. Default: the server's (the "
+                f"paper's {DEFAULT_VARIANCE} unless set)"
+            ),
+            **_range(params.MIN_VARIANCE, params.MAX_VARIANCE),
+        ),
     ) -> Response:
         start = time.perf_counter()
         res = params.resolution(resolution)
@@ -219,8 +268,14 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
         sigma2 = params.variance(variance)
         picture = (shade, sigma2 if shade is Shade.classes else None) if format is Format.png else None
         prob = occupancy_of(grid, selected)
-        reply = (format, picture, tuple(grid.origin), grid.resolution, grid.shape,
-                 None if selected is None else tuple(selected))
+        reply = (
+            format,
+            picture,
+            tuple(grid.origin),
+            grid.resolution,
+            grid.shape,
+            None if selected is None else tuple(selected),
+        )
         body = encoded.get(reply, prob)
         if body is None:
             if format is Format.npy:
@@ -233,18 +288,23 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
                 body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
             encoded.put(reply, prob, body)
         state.metrics.query_seconds.observe(time.perf_counter() - start)
-        headers = {"X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
-                   "X-Grid-Resolution": repr(grid.resolution),
-                   "X-Grid-Shape": ",".join(str(n) for n in grid.array_shape)}
+        headers = {
+            "X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
+            "X-Grid-Resolution": repr(grid.resolution),
+            "X-Grid-Shape": ",".join(str(n) for n in grid.array_shape),
+        }
         return Response(body, media_type=MEDIA_TYPES[format], headers=headers)
 
     def points_reply(pts: np.ndarray, res: float, selected, field: str) -> dict:
         start = time.perf_counter()
         grids = plan(pts, res)
         if len(grids) > MAX_GRIDS:
-            raise ApiError(field, f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per "
-                                  f"request: scattered points cost one each, points on a common lattice of spacing "
-                                  f"`resolution` (such as cell centres) share one per {BLOCK}x{BLOCK} cells")
+            raise ApiError(
+                field,
+                f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per "
+                f"request: scattered points cost one each, points on a common lattice of spacing "
+                f"`resolution` (such as cell centres) share one per {BLOCK}x{BLOCK} cells",
+            )
         try:
             prob = point_probabilities(fmap, pts, res, selected, grids)
         except ValueError as e:
@@ -254,14 +314,20 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
 
     @app.get("/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point")
     def occupancy_points(
-        xy: str | None = Query(None, description="x1,y1,x2,y2,... (2D maps)",
-                               json_schema_extra={"pattern": params.NUMBERS_PATTERN}),
-        xyz: str | None = Query(None, description="x1,y1,z1,... (3D maps)",
-                                json_schema_extra={"pattern": params.NUMBERS_PATTERN}),
-        resolution: float = Query(..., description="cell size in metres",
-                                  **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION)),
-        robots: str | None = Query(None, description="comma-separated robot ids; every robot when absent",
-                                   json_schema_extra={"pattern": params.ROBOTS_PATTERN}),
+        xy: str | None = Query(
+            None, description="x1,y1,x2,y2,... (2D maps)", json_schema_extra={"pattern": params.NUMBERS_PATTERN}
+        ),
+        xyz: str | None = Query(
+            None, description="x1,y1,z1,... (3D maps)", json_schema_extra={"pattern": params.NUMBERS_PATTERN}
+        ),
+        resolution: float = Query(
+            ..., description="cell size in metres", **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION)
+        ),
+        robots: str | None = Query(
+            None,
+            description="comma-separated robot ids; every robot when absent",
+            json_schema_extra={"pattern": params.ROBOTS_PATTERN},
+        ),
     ) -> dict:
         if (xy is None) == (xyz is None):
             raise ApiError("xy", "give exactly one of xy (2D) or xyz (3D)")
@@ -311,8 +377,12 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
     def metrics() -> Response:
         stats = fmap.cache_stats()
         with sync_lock:  # the map counts; the Prometheus counters follow by the difference
-            for key, counter in (("hits", state.metrics.cache_hits), ("misses", state.metrics.cache_misses),
-                                 ("updates", state.metrics.cache_updates), ("stale", state.metrics.cache_stale)):
+            for key, counter in (
+                ("hits", state.metrics.cache_hits),
+                ("misses", state.metrics.cache_misses),
+                ("updates", state.metrics.cache_updates),
+                ("stale", state.metrics.cache_stale),
+            ):
                 if stats[key] > synced[key]:
                     counter.inc(stats[key] - synced[key])
                     synced[key] = stats[key]
@@ -326,9 +396,12 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
 
     @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
     async def docs() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} - API",
-                                   swagger_js_url=f"{SWAGGER_STATIC}/swagger-ui-bundle.js",
-                                   swagger_css_url=f"{SWAGGER_STATIC}/swagger-ui.css",
-                                   swagger_favicon_url=f"{SWAGGER_STATIC}/favicon.png")
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url,
+            title=f"{app.title} - API",
+            swagger_js_url=f"{SWAGGER_STATIC}/swagger-ui-bundle.js",
+            swagger_css_url=f"{SWAGGER_STATIC}/swagger-ui.css",
+            swagger_favicon_url=f"{SWAGGER_STATIC}/favicon.png",
+        )
 
     return app

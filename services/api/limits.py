@@ -5,6 +5,7 @@ parse a body of any size before the point limit could say no. A declared Content
 the cap is answered at once; a chunked body is counted as it arrives and refused when it passes
 the cap. Both replies are 413 with the API's JSON error body.
 """
+
 from __future__ import annotations
 
 import json
@@ -49,7 +50,15 @@ class BodyLimit:
         error = _too_large(self.max_bytes)
         body = json.dumps({"detail": error.detail, "field": None}).encode()
         # Connection: close, since the unread body would otherwise be taken for the next request.
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                                (b"connection", b"close")]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})

@@ -3,6 +3,7 @@
 Every rejection is an `ApiError` that names the parameter, turned into a JSON 4xx reply by the
 app. Limits are checked on the numbers alone, before a grid or array is built.
 """
+
 from __future__ import annotations
 
 import math
@@ -90,8 +91,11 @@ def grid(lo: np.ndarray, hi: np.ndarray, res: float) -> Grid:
     spans = [(h - l) / res for l, h in zip(lo.tolist(), hi.tolist())]  # Python floats: inf, no warning
     cells = math.prod(max(math.ceil(n - 1e-9), 1) for n in spans) if all(map(math.isfinite, spans)) else math.inf
     if cells > MAX_CELLS:
-        raise ApiError("bbox", f"{float(min(cells, 1e300)):.4g} cells requested; at most {MAX_CELLS:,} cells per request "
-                               "(use a coarser resolution or a smaller box)")
+        raise ApiError(
+            "bbox",
+            f"{float(min(cells, 1e300)):.4g} cells requested; at most {MAX_CELLS:,} cells per request "
+            "(use a coarser resolution or a smaller box)",
+        )
     return Grid.from_bbox(lo, hi, res)
 
 

@@ -6,6 +6,7 @@ about as much as the grid they sample. Other points get a grid of one cell each,
 cost a few milliseconds each: a request may need at most MAX_GRIDS grids. Monte Carlo, as
 every query of the fleet map, until the analytic evaluation is wired in.
 """
+
 from __future__ import annotations
 
 from collections import defaultdict
@@ -46,8 +47,9 @@ def plan(xy: np.ndarray, resolution: float) -> list[tuple[Grid, np.ndarray, np.n
     return out
 
 
-def point_probabilities(fleet_map, xy: np.ndarray, resolution: float, robots: Sequence[str] | None = None,
-                        grids: list | None = None) -> np.ndarray:
+def point_probabilities(
+    fleet_map, xy: np.ndarray, resolution: float, robots: Sequence[str] | None = None, grids: list | None = None
+) -> np.ndarray:
     """float32 (n,) p(occupied) of the cell of size `resolution` centred on each point of `xy` (n, d);
     `grids` is plan(xy, resolution) when already made."""
     out = np.empty(len(xy), dtype=np.float32)

@@ -3,6 +3,7 @@
 Every reader yields `RangeScan`s: returned end points and no-return directions in the sensor
 frame, plus the sensor pose in the log's map frame. `read_scans` picks the reader.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -16,8 +17,16 @@ from .common import DatasetError, RangeScan, read_text
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
 from .xyz import read_xyz
 
-__all__ = ["DatasetError", "FORMATS", "RangeScan", "count_scans", "guess_format", "keep_beams",
-           "match_by_timestamp", "read_scans"]
+__all__ = [
+    "DatasetError",
+    "FORMATS",
+    "RangeScan",
+    "count_scans",
+    "guess_format",
+    "keep_beams",
+    "match_by_timestamp",
+    "read_scans",
+]
 
 FORMATS = ("carmen", "kurt3d", "xyz")
 _CARMEN_SUFFIXES = {".log", ".clf"}
@@ -38,8 +47,9 @@ def guess_format(path: str | Path) -> str:
     return "xyz"
 
 
-def read_scans(path: str | Path, fmt: str | None = None, *, keep_fraction: float = 1.0, seed: int = 0,
-               **options) -> Iterator[RangeScan]:
+def read_scans(
+    path: str | Path, fmt: str | None = None, *, keep_fraction: float = 1.0, seed: int = 0, **options
+) -> Iterator[RangeScan]:
     """The scans of a data file or directory, in order.
 
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that

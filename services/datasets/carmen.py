@@ -12,12 +12,13 @@ that value, so unless it is given it is detected: the largest range of the log, 
 occurs at least `SATURATION_MIN_COUNT` times (a real obstacle is never measured at exactly the
 same longest distance that often).
 """
+
 from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,7 @@ class FlaserLog:
     stamps: np.ndarray  # (k,) logger timestamps, seconds
 
 
-@lru_cache(maxsize=None)
+@cache
 def beam_directions(n: int) -> np.ndarray:
     """(n, 2) unit directions of an n-beam scan (n in BEAM_COUNTS), sensor frame: x forward, y left."""
     step = np.pi / n if n % 2 == 0 else np.pi / (n - 1)  # odd counts include both ends
@@ -62,8 +63,10 @@ def _parse_flaser(fields: list[str], where: str) -> np.ndarray:
         raise DatasetError(f"{where}: FLASER: unsupported beam count {n} (expected one of {BEAM_COUNTS})")
     found = len(fields) - 2
     if found != n + TRAILING_FIELDS:
-        raise DatasetError(f"{where}: FLASER: expected {n} ranges and {TRAILING_FIELDS} pose/timestamp "
-                           f"fields ({n + TRAILING_FIELDS} values after the count), found {found}")
+        raise DatasetError(
+            f"{where}: FLASER: expected {n} ranges and {TRAILING_FIELDS} pose/timestamp "
+            f"fields ({n + TRAILING_FIELDS} values after the count), found {found}"
+        )
     try:
         # every field but the hostname, the second to last
         values = np.array(fields[2:-2] + fields[-1:], dtype=np.float64)
@@ -86,8 +89,9 @@ def load_flaser(path: str | Path) -> FlaserLog:
                 records.append(_parse_flaser(fields, f"{path.name}:{lineno}"))
     counts = [len(v) - 8 for v in records]
     tails = np.array([v[n:] for v, n in zip(records, counts)]).reshape(-1, 8)
-    return FlaserLog(ranges=[v[:n] for v, n in zip(records, counts)],
-                     poses=tails[:, 0:3], odom=tails[:, 3:6], stamps=tails[:, 7])
+    return FlaserLog(
+        ranges=[v[:n] for v, n in zip(records, counts)], poses=tails[:, 0:3], odom=tails[:, 3:6], stamps=tails[:, 7]
+    )
 
 
 def count_carmen(path: str | Path) -> int:
@@ -116,13 +120,19 @@ def _scans(log: FlaserLog, no_return_range: float | None) -> Iterator[RangeScan]
     for i, ranges in enumerate(log.ranges):
         directions = beam_directions(len(ranges))
         hit, miss = classify_beams(ranges, 0.0, no_return_range)
-        yield RangeScan(index=i, stamp=float(log.stamps[i]),
-                        pose=Pose.from_xytheta(*log.poses[i]), odom_pose=Pose.from_xytheta(*log.odom[i]),
-                        hits=directions[hit] * ranges[hit, None], no_return=directions[miss])
+        yield RangeScan(
+            index=i,
+            stamp=float(log.stamps[i]),
+            pose=Pose.from_xytheta(*log.poses[i]),
+            odom_pose=Pose.from_xytheta(*log.odom[i]),
+            hits=directions[hit] * ranges[hit, None],
+            no_return=directions[miss],
+        )
 
 
-def match_by_timestamp(scans_a: Iterable[RangeScan], scans_b: Iterable[RangeScan], tol: float = 1e-2,
-                       same_beams: bool = True) -> list[tuple[RangeScan, RangeScan]]:
+def match_by_timestamp(
+    scans_a: Iterable[RangeScan], scans_b: Iterable[RangeScan], tol: float = 1e-2, same_beams: bool = True
+) -> list[tuple[RangeScan, RangeScan]]:
     """Pairs (a, b) of the same scan in two logs: stamps within tol seconds, nearest first.
 
     Timestamps alone are ambiguous: the raw Intel log holds scans a few microseconds apart and

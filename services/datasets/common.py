@@ -1,4 +1,5 @@
 """What every reader shares: the scan record, the error type, and text-file parsing."""
+
 from __future__ import annotations
 
 import bz2
@@ -79,8 +80,9 @@ def parse_rows(text: str, name: str, ncols: int) -> np.ndarray:
     raise DatasetError(f"{name}: numbers in a form numpy cannot read")
 
 
-def classify_beams(ranges: np.ndarray, min_range: float,
-                   no_return_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+def classify_beams(
+    ranges: np.ndarray, min_range: float, no_return_range: float | None
+) -> tuple[np.ndarray, np.ndarray]:
     """Boolean masks (hit, no_return) over beams.
 
     Ranges in [min_range, no_return_range) are hits; ranges at or beyond no_return_range are
@@ -91,8 +93,7 @@ def classify_beams(ranges: np.ndarray, min_range: float,
     return ok & (ranges >= min_range) & (ranges < limit), ok & (ranges >= limit)
 
 
-def split_points(points: np.ndarray, min_range: float,
-                 no_return_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+def split_points(points: np.ndarray, min_range: float, no_return_range: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(hits, no_return) from end points given directly (3D scans): ranges are their norms."""
     ranges = np.linalg.norm(points, axis=1)
     hit, miss = classify_beams(ranges, min_range, no_return_range)

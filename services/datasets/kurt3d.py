@@ -17,6 +17,7 @@ C = [[0, 0, 1], [-1, 0, 0], [0, 1, 0]], i.e. x_rh = z, y_rh = -x, z_rh = y. C is
 `RangeScan.pose` is the registered pose (the .pose guess when there is no .frames file) and
 `odom_pose` the .pose guess. 3DTK logs carry no time: `index` and `stamp` are the scan number NNN.
 """
+
 from __future__ import annotations
 
 import re
@@ -83,8 +84,7 @@ def _registered_pose(frames: Path) -> Pose:
 def _euler_pose(pose_file: Path) -> Pose:
     rows = parse_rows(read_text(pose_file), pose_file.name, 3)
     if rows.shape != (2, 3):
-        raise DatasetError(f"{pose_file.name}: expected 2 lines (translation cm, Euler angles deg), "
-                           f"found {len(rows)}")
+        raise DatasetError(f"{pose_file.name}: expected 2 lines (translation cm, Euler angles deg), found {len(rows)}")
     (cx, cy, cz), (sx, sy, sz) = np.cos(np.radians(rows[1])), np.sin(np.radians(rows[1]))
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
@@ -92,8 +92,13 @@ def _euler_pose(pose_file: Path) -> Pose:
     return _to_right_handed(Rx @ Ry @ Rz, rows[0], pose_file.name)
 
 
-def read_kurt3d(path: str | Path, *, scans: Iterable[int] | None = None, min_range: float = MIN_RANGE,
-                no_return_range: float = NO_RETURN_RANGE) -> Iterator[RangeScan]:
+def read_kurt3d(
+    path: str | Path,
+    *,
+    scans: Iterable[int] | None = None,
+    min_range: float = MIN_RANGE,
+    no_return_range: float = NO_RETURN_RANGE,
+) -> Iterator[RangeScan]:
     """The scans of a 3DTK directory (or one scanNNN.3d(.gz) file) in right-handed metres.
 
     `scans` picks scan numbers NNN; ranges (metres) below `min_range` are dropped, at or beyond
@@ -117,5 +122,4 @@ def _scans(files: list[tuple[int, Path]], min_range: float, no_return_range: flo
             raise DatasetError(f"{points_file.name}: neither {frames_file.name} nor {pose_file.name} exists")
         points_lh_cm = parse_rows(read_text(points_file), points_file.name, 3)
         hits, no_return = split_points(points_lh_cm @ (LH_TO_RH * CM).T, min_range, no_return_range)
-        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=odom,
-                        hits=hits, no_return=no_return)
+        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=odom, hits=hits, no_return=no_return)

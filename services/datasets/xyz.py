@@ -4,6 +4,7 @@ Such files carry no pose and no no-return beams; the caller says where the senso
 OctoMap `scan.dat` sensor sits near (0, 0, 0.49)) and, optionally, the range beyond which a
 point stands for a beam with no return.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
@@ -16,8 +17,9 @@ from gmm_core.pose import Pose
 from .common import RangeScan, parse_rows, read_text, split_points
 
 
-def read_xyz(path: str | Path, *, origin: Sequence[float] = (0.0, 0.0, 0.0),
-             max_range: float | None = None) -> Iterator[RangeScan]:
+def read_xyz(
+    path: str | Path, *, origin: Sequence[float] = (0.0, 0.0, 0.0), max_range: float | None = None
+) -> Iterator[RangeScan]:
     """One scan: pose = translation to `origin`, hits = points - origin (sensor frame).
 
     Points at or beyond `max_range` from the origin become no-return directions.

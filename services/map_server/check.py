@@ -4,6 +4,7 @@ every row something the server would have accepted?
 Opened read-only, so it can run beside a live server or on what a killed one left behind
 (WAL included), without changing either.
 """
+
 from __future__ import annotations
 
 import sqlite3
@@ -36,8 +37,11 @@ def check_store(data_dir: str | Path) -> StoreCheck:
             try:
                 m = decode(raw, expect=ScanMessage)
                 if (m.fleet, m.robot, m.node, len(raw)) != (fleet, robot, node, size):
-                    raise ProtocolError("key", f"row says {fleet}/{robot}/{node} ({size} B), message "
-                                               f"{m.fleet}/{m.robot}/{m.node} ({len(raw)} B)")
+                    raise ProtocolError(
+                        "key",
+                        f"row says {fleet}/{robot}/{node} ({size} B), message "
+                        f"{m.fleet}/{m.robot}/{m.node} ({len(raw)} B)",
+                    )
             except ProtocolError as error:
                 result.bad.append(f"scan {fleet}/{robot}/{node}: {error}")
         for fleet, robot, revision, raw in db.execute("SELECT fleet, robot, revision, raw FROM poses"):
@@ -45,8 +49,9 @@ def check_store(data_dir: str | Path) -> StoreCheck:
             try:
                 m = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))  # merged graphs may be large
                 if (m.fleet, m.robot, m.revision) != (fleet, robot, revision):
-                    raise ProtocolError("key", f"row says {fleet}/{robot} r{revision}, message "
-                                               f"{m.fleet}/{m.robot} r{m.revision}")
+                    raise ProtocolError(
+                        "key", f"row says {fleet}/{robot} r{revision}, message {m.fleet}/{m.robot} r{m.revision}"
+                    )
             except ProtocolError as error:
                 result.bad.append(f"poses {fleet}/{robot}: {error}")
         return result

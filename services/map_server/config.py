@@ -1,4 +1,5 @@
 """The `server` section of the configuration: one map server process."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -8,6 +8,7 @@ FleetMap is the facade the API, ingest and server use; the work is done by its p
 nodes.NodeStore (nodes, pose graphs, spatial index, change log), samples.SampleCache,
 tiles.TileCache (the incremental tile update) and tracers.TracerPool.
 """
+
 from __future__ import annotations
 
 import threading
@@ -34,8 +35,14 @@ class FleetMap:
     tracers.py for why not numba's threading layer).
     """
 
-    def __init__(self, fleet: str, *, samples_per_cell: float = 4.0, prior: float = DEFAULT_PRIOR,
-                 trace_threads: int | None = None):
+    def __init__(
+        self,
+        fleet: str,
+        *,
+        samples_per_cell: float = 4.0,
+        prior: float = DEFAULT_PRIOR,
+        trace_threads: int | None = None,
+    ):
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell
@@ -80,8 +87,7 @@ class FleetMap:
 
     def cache_stats(self) -> dict:
         with self._lock:
-            return {**self._tiles.stats(), "sample_rays": self._samples.rays_held,
-                    "change_log": len(self._nodes.log)}
+            return {**self._tiles.stats(), "sample_rays": self._samples.rays_held, "change_log": len(self._nodes.log)}
 
     def robots(self) -> list[dict]:
         with self._lock:

@@ -10,6 +10,7 @@ is acknowledged before its commit.
 A scan over the quota is answered with a Rejection, not left unanswered: the robot would
 otherwise resend it forever without knowing why.
 """
+
 from __future__ import annotations
 
 import logging
@@ -132,16 +133,20 @@ class Ingest:
         kept, refused, batch = [], defaultdict(list), defaultdict(int)
         for message, payload in scans:
             robot = message.robot
-            if (self._usage[robot] + batch[robot] + len(payload) > self.quota
-                    and self.state.store.scan_bytes(message.fleet, robot, message.node) is None):
+            if (
+                self._usage[robot] + batch[robot] + len(payload) > self.quota
+                and self.state.store.scan_bytes(message.fleet, robot, message.node) is None
+            ):
                 refused[robot].append(message.node)
                 self.state.metrics.rejected.labels("scan", "quota").inc()
             else:
                 kept.append((message, payload))
                 batch[robot] += len(payload)
         for robot, nodes in refused.items():
-            detail = (f"robot {robot} holds {self._usage[robot] / 2**20:.4g} MiB of scans on this server, "
-                      f"the quota is {self.quota / 2**20:.4g} MiB (gmmap server --robot-quota-mb)")
+            detail = (
+                f"robot {robot} holds {self._usage[robot] / 2**20:.4g} MiB of scans on this server, "
+                f"the quota is {self.quota / 2**20:.4g} MiB (gmmap server --robot-quota-mb)"
+            )
             log.warning("refused %d scans of %s: %s", len(nodes), robot, detail)
             self._send(robot, Rejection(self.state.fleet, robot, "scan", tuple(nodes), "quota", detail))
         return kept

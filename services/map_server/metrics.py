@@ -16,30 +16,36 @@ class ServerMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
         r = self.registry
-        self.accepted = Counter(
-            "gmmap_messages_accepted", "Messages stored (or already held)", ["kind"], registry=r
-        )
+        self.accepted = Counter("gmmap_messages_accepted", "Messages stored (or already held)", ["kind"], registry=r)
         self.rejected = Counter(
-            "gmmap_messages_rejected", "Messages rejected at the boundary", ["kind", "reason"],
+            "gmmap_messages_rejected",
+            "Messages rejected at the boundary",
+            ["kind", "reason"],
             registry=r,
         )
-        self.bytes_received = Counter(
-            "gmmap_bytes_received", "Wire bytes of accepted messages", ["robot"], registry=r
-        )
+        self.bytes_received = Counter("gmmap_bytes_received", "Wire bytes of accepted messages", ["robot"], registry=r)
         self.stored_bytes = Gauge(
-            "gmmap_robot_stored_bytes", "Wire bytes of the scans stored per robot (what the quota counts)",
-            ["robot"], registry=r,
+            "gmmap_robot_stored_bytes",
+            "Wire bytes of the scans stored per robot (what the quota counts)",
+            ["robot"],
+            registry=r,
         )
         self.query_seconds = Histogram(
-            "gmmap_query_seconds", "Occupancy query latency (HTTP and Zenoh)", registry=r,
+            "gmmap_query_seconds",
+            "Occupancy query latency (HTTP and Zenoh)",
+            registry=r,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.15, 0.25, 0.5, 1, 2.5, 5),
         )
         self.cache_hits = Counter("gmmap_cache_hits", "Tile cache hits", registry=r)
         self.cache_misses = Counter("gmmap_cache_misses", "Tile cache misses (traced from scratch)", registry=r)
-        self.cache_updates = Counter("gmmap_cache_updates", "Stale cached tiles brought up to date (only new or "
-                                     "moved scans traced)", registry=r)
-        self.cache_stale = Counter("gmmap_cache_stale", "Requests answered with a tile's previous state while "
-                                   "another request updated it", registry=r)
+        self.cache_updates = Counter(
+            "gmmap_cache_updates", "Stale cached tiles brought up to date (only new or moved scans traced)", registry=r
+        )
+        self.cache_stale = Counter(
+            "gmmap_cache_stale",
+            "Requests answered with a tile's previous state while another request updated it",
+            registry=r,
+        )
 
     def render(self) -> bytes:
         """The registry in Prometheus text exposition format."""
@@ -47,9 +53,4 @@ class ServerMetrics:
 
     def rejected_total(self) -> float:
         """Sum over all (kind, reason) labels — for tests and logs."""
-        return sum(
-            s.value
-            for m in self.rejected.collect()
-            for s in m.samples
-            if s.name.endswith("_total")
-        )
+        return sum(s.value for m in self.rejected.collect() for s in m.samples if s.name.endswith("_total"))

@@ -4,6 +4,7 @@ change log a cached tile reads to learn what moved since it was traced.
 
 Not thread-safe: the FleetMap calls it under its lock.
 """
+
 from __future__ import annotations
 
 import time
@@ -43,8 +44,9 @@ def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def world_boxes(poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray,
-                anchor: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
+def world_boxes(
+    poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray, anchor: Pose | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned boxes (n, d) around n node-frame boxes, each moved by anchor ∘ its pose."""
     if not poses:
         return np.zeros((0, lo.shape[-1])), np.zeros((0, lo.shape[-1]))
@@ -170,11 +172,11 @@ class ChangeLog:
         """Each key logged from `position` on, once, in the order of first appearance."""
         if position < self.start:
             raise ValueError(f"change log position {position} was dropped (the log starts at {self.start})")
-        return list(dict.fromkeys(self._keys[position - self.start:]))
+        return list(dict.fromkeys(self._keys[position - self.start :]))
 
     def drop_before(self, position: int) -> None:
         if position > self.start:
-            del self._keys[:position - self.start]
+            del self._keys[: position - self.start]
             self.start = position
 
 
@@ -204,8 +206,15 @@ class NodeStore:
         if msg.node in robot.nodes:
             return False
         lo, hi = local_reach(msg.model)
-        node = Node(NodeKey(msg.robot, msg.node), msg.model, msg.pose, scan_seed(msg.robot, msg.node), lo, hi,
-                    corrected=robot.pending.pop(msg.node, None))
+        node = Node(
+            NodeKey(msg.robot, msg.node),
+            msg.model,
+            msg.pose,
+            scan_seed(msg.robot, msg.node),
+            lo,
+            hi,
+            corrected=robot.pending.pop(msg.node, None),
+        )
         robot.nodes[msg.node] = node
         robot.components += msg.model.n_components
         world_lo, world_hi = world_boxes([node.map_pose], lo[None], hi[None], robot.anchor)
@@ -236,8 +245,9 @@ class NodeStore:
             node = robot.nodes.get(node_id)
             if node is None:
                 robot.pending[node_id] = pose  # its scan is still on the way
-            elif node.corrected is None or not (np.array_equal(node.corrected.R, pose.R)
-                                                and np.array_equal(node.corrected.t, pose.t)):
+            elif node.corrected is None or not (
+                np.array_equal(node.corrected.R, pose.R) and np.array_equal(node.corrected.t, pose.t)
+            ):
                 old_poses.setdefault(node.key, node.map_pose)
                 node.corrected = pose
                 node.pose_rev += 1
@@ -271,8 +281,11 @@ class NodeStore:
         if self._index is None:
             return {}
         wanted = None if robots is None else set(robots)
-        return {key: self.posed(key) for key in self._index.reaching(grid.origin, grid.upper)
-                if wanted is None or key.robot in wanted}
+        return {
+            key: self.posed(key)
+            for key in self._index.reaching(grid.origin, grid.upper)
+            if wanted is None or key.robot in wanted
+        }
 
     def changed_since(self, position: int, grid: Grid, robots: Sequence[str] | None) -> dict[NodeKey, Posed | None]:
         """Nodes (of all robots or of `robots`) added or moved from change-log `position` on: where
@@ -286,13 +299,23 @@ class NodeStore:
             keys = [k for k in keys if k.robot in wanted]
         if not keys:
             return {}
-        return {key: self.posed(key) if reaches else None
-                for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper))}
+        return {
+            key: self.posed(key) if reaches else None
+            for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper))
+        }
 
     def robot_rows(self) -> list[dict]:
-        return [{"robot": name, "nodes": len(r.nodes), "components": r.components,
-                 "bytes_received": r.bytes_received, "last_seen": r.last_seen, "pose_revision": r.revision}
-                for name, r in sorted(self.robots.items())]
+        return [
+            {
+                "robot": name,
+                "nodes": len(r.nodes),
+                "components": r.components,
+                "bytes_received": r.bytes_received,
+                "last_seen": r.last_seen,
+                "pose_revision": r.revision,
+            }
+            for name, r in sorted(self.robots.items())
+        ]
 
     def trajectory(self, robot: str) -> np.ndarray:
         """World positions of the robot's sensor origins, in node order."""

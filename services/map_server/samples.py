@@ -4,6 +4,7 @@ Samples stay in the node frame: a pose-graph update moves them at trace time (Eq
 redraws them. They are deterministic by the node's seed, so an evicted entry drawn again has the
 same bytes.
 """
+
 from __future__ import annotations
 
 import threading

@@ -4,6 +4,7 @@ Start-up: open the store, replay it into the FleetMap, then open the Zenoh sessi
 pose subscribers, occupancy queryable) and the HTTP app under uvicorn. SIGTERM/SIGINT stop
 the HTTP server, undeclare the Zenoh entities, drain the ingest queue and close the session.
 """
+
 from __future__ import annotations
 
 import logging
@@ -16,9 +17,8 @@ from concurrent.futures import ThreadPoolExecutor
 import zenoh
 
 from gmm_core import Grid
-from protocol import (MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard,
-                      scan_wildcard)
 from gmm_core.reconstruct import ReconstructionConfig
+from protocol import MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard, scan_wildcard
 from services.api import params  # one set of limits for both APIs
 from services.config import summary
 from services.zenoh_config import zenoh_config
@@ -69,10 +69,13 @@ class ZenohSide:
         self._queries = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gmmap-query")
         fleet = state.fleet
         on_sample = lambda sample: ingest.submit(str(sample.key_expr), sample.payload.to_bytes())  # noqa: E731
-        self._subscribers = [self.session.declare_subscriber(scan_wildcard(fleet), on_sample),
-                             self.session.declare_subscriber(poses_wildcard(fleet), on_sample)]
+        self._subscribers = [
+            self.session.declare_subscriber(scan_wildcard(fleet), on_sample),
+            self.session.declare_subscriber(poses_wildcard(fleet), on_sample),
+        ]
         self._queryable = self.session.declare_queryable(
-            occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q))
+            occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q)
+        )
 
     def publish(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, express=True)
@@ -115,8 +118,14 @@ def start_http(state: ServerState, address: str, variance: float):
     host, _, port = address.rpartition(":")
     # h11 refuses a request head (request line with its query string, and headers) over this size
     # with a plain 400; 1 MiB holds the longest GET the API accepts (10,000 points).
-    config = uvicorn.Config(create_app(state, default_variance=variance), host=host or "127.0.0.1", port=int(port),
-                            log_level="warning", lifespan="on", h11_max_incomplete_event_size=MAX_REQUEST_HEAD)
+    config = uvicorn.Config(
+        create_app(state, default_variance=variance),
+        host=host or "127.0.0.1",
+        port=int(port),
+        log_level="warning",
+        lifespan="on",
+        h11_max_incomplete_event_size=MAX_REQUEST_HEAD,
+    )
     server = uvicorn.Server(config)
     # uvicorn leaves signal handling to the main thread when it runs elsewhere.
     thread = threading.Thread(target=server.run, name="gmmap-http", daemon=True)
@@ -136,8 +145,12 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
         signal.signal(signum, lambda *_: stop.set())
 
     store = Store(options.data_dir, synchronous=options.synchronous)
-    fleet_map = FleetMap(options.fleet, samples_per_cell=reconstruction.samples_per_cell, prior=reconstruction.prior,
-                         trace_threads=options.trace_threads)
+    fleet_map = FleetMap(
+        options.fleet,
+        samples_per_cell=reconstruction.samples_per_cell,
+        prior=reconstruction.prior,
+        trace_threads=options.trace_threads,
+    )
     state = ServerState(options.fleet, fleet_map, store)
     zenoh_side: ZenohSide | None = None
     quota = int(options.robot_quota_mb * 2**20) if options.robot_quota_mb > 0 else None
@@ -146,19 +159,23 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
     ingest.start()
     http = None
     try:
-        config = zenoh_config("peer", listen=options.listen, connect=options.zenoh_connect,
-                              config_file=options.zenoh_config)
+        config = zenoh_config(
+            "peer", listen=options.listen, connect=options.zenoh_connect, config_file=options.zenoh_config
+        )
         try:
             zenoh_side = ZenohSide(state, ingest, config)
         except zenoh.ZError as error:
             raise OSError(f"cannot open the Zenoh session: {error}") from None
         if options.http:
             http = start_http(state, options.http, reconstruction.variance)
-        print(f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
-              f"zenoh {','.join(options.listen) or '-'}"
-              f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
-              f"http {'http://' + options.http if http else 'off'}, {time.perf_counter() - started:.1f} s",
-              file=sys.stderr, flush=True)
+        print(
+            f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
+            f"zenoh {','.join(options.listen) or '-'}"
+            f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
+            f"http {'http://' + options.http if http else 'off'}, {time.perf_counter() - started:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         stop.wait()
         print("gmmap server: stopping", file=sys.stderr, flush=True)
     finally:

@@ -21,6 +21,6 @@ class ServerState:
     """
 
     fleet: str
-    fleet_map: "FleetMap"
-    store: "Store | None" = None
+    fleet_map: FleetMap
+    store: Store | None = None
     metrics: ServerMetrics = field(default_factory=ServerMetrics)

@@ -6,6 +6,7 @@ same query gives the same bytes. Per robot, the pose graph is kept as one encode
 PoseGraphUpdate: the newest revision, merged with the node poses and anchor of older ones
 (an update lists only the nodes it moves; the others keep their last pose).
 """
+
 from __future__ import annotations
 
 import sqlite3
@@ -78,10 +79,14 @@ class Store:
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                new = [self._db.execute(
-                    "INSERT OR IGNORE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw))).rowcount == 1
-                    for m, raw in batch]
+                new = [
+                    self._db.execute(
+                        "INSERT OR IGNORE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw)),
+                    ).rowcount
+                    == 1
+                    for m, raw in batch
+                ]
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
@@ -103,8 +108,14 @@ class Store:
                 merged = _merge(held, update)
                 self._db.execute(
                     "INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?)",
-                    (update.fleet, update.robot, update.revision, time.time(),
-                     bytes(raw) if merged is update else encode(merged)))
+                    (
+                        update.fleet,
+                        update.robot,
+                        update.revision,
+                        time.time(),
+                        bytes(raw) if merged is update else encode(merged),
+                    ),
+                )
                 self._db.execute("COMMIT")
                 self._graphs[(update.fleet, update.robot)] = merged
             except BaseException:
@@ -128,10 +139,10 @@ class Store:
     def load(self, fleet: str) -> Iterator[Stored]:
         """Everything a restart replays into a FleetMap: scans by (robot, node), then pose graphs."""
         with self._lock:
-            scans = self._db.execute("SELECT raw, size FROM scans WHERE fleet = ? ORDER BY robot, node",
-                                     (fleet,)).fetchall()
-            graphs = self._db.execute("SELECT raw FROM poses WHERE fleet = ? ORDER BY robot",
-                                      (fleet,)).fetchall()
+            scans = self._db.execute(
+                "SELECT raw, size FROM scans WHERE fleet = ? ORDER BY robot, node", (fleet,)
+            ).fetchall()
+            graphs = self._db.execute("SELECT raw FROM poses WHERE fleet = ? ORDER BY robot", (fleet,)).fetchall()
         for raw, size in scans:
             yield Stored(decode(raw, expect=ScanMessage), size)
         for (raw,) in graphs:
@@ -151,8 +162,9 @@ class Store:
 
     def scan_bytes(self, fleet: str, robot: str, node: int) -> bytes | None:
         with self._lock:
-            row = self._db.execute("SELECT raw FROM scans WHERE fleet = ? AND robot = ? AND node = ?",
-                                   (fleet, robot, node)).fetchone()
+            row = self._db.execute(
+                "SELECT raw FROM scans WHERE fleet = ? AND robot = ? AND node = ?", (fleet, robot, node)
+            ).fetchone()
         return row[0] if row else None
 
     def pose_graph(self, fleet: str, robot: str) -> PoseGraphUpdate | None:

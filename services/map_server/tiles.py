@@ -11,6 +11,7 @@ A tile reads the node store's change log from the position it last accounted for
 cached tile has read are dropped. A tile that the log no longer covers (it was not asked for
 while the log outgrew its limit) is traced afresh on its next query.
 """
+
 from __future__ import annotations
 
 import threading
@@ -86,11 +87,15 @@ class TileCache:
         if self._boxes is None:
             tiles = list(self._tiles.values())
             d = self._nodes.dim or 2
-            self._boxes = (tiles, np.array([t.grid.origin for t in tiles]).reshape(-1, d),
-                           np.array([t.grid.upper for t in tiles]).reshape(-1, d))
+            self._boxes = (
+                tiles,
+                np.array([t.grid.origin for t in tiles]).reshape(-1, d),
+                np.array([t.grid.upper for t in tiles]).reshape(-1, d),
+            )
         tiles, tiles_lo, tiles_hi = self._boxes
-        reached = np.any(np.all(lo[:, None] <= tiles_hi[None], axis=2) & np.all(hi[:, None] >= tiles_lo[None], axis=2),
-                         axis=0)
+        reached = np.any(
+            np.all(lo[:, None] <= tiles_hi[None], axis=2) & np.all(hi[:, None] >= tiles_lo[None], axis=2), axis=0
+        )
         for i in np.flatnonzero(reached):
             tiles[i].changes += 1
 
@@ -188,5 +193,11 @@ class TileCache:
 
     def stats(self) -> dict:
         with self._lock:
-            return {"hits": self._hits, "misses": self._misses, "updates": self._updates, "stale": self._stale,
-                    "tiles": len(self._tiles), "tile_bytes": self._bytes}
+            return {
+                "hits": self._hits,
+                "misses": self._misses,
+                "updates": self._updates,
+                "stale": self._stale,
+                "tiles": len(self._tiles),
+                "tile_bytes": self._bytes,
+            }

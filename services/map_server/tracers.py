@@ -5,6 +5,7 @@ numba's OpenMP threads spin at every barrier: two of them on a busy 2-core machi
 slower than one (0.5 vs 3.1-3.7 M rays/s). (Tracers at nice +10 were tried: under a flood of
 HTTP requests they starved, and a lone large query waited minutes.)
 """
+
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
@@ -55,7 +56,11 @@ class TracerPool:
                 rays = self.samples.rays(posed.node, grid.resolution)
                 if len(rays.ends):
                     # Eq. 2: the node-frame origin and ends moved by the node's world pose.
-                    yield (posed.pose.apply(posed.node.model.origin[None])[0], posed.pose.apply(rays.ends),
-                           sign * rays.weights, rays.is_hit)
+                    yield (
+                        posed.pose.apply(posed.node.model.origin[None])[0],
+                        posed.pose.apply(rays.ends),
+                        sign * rays.weights,
+                        rays.is_hit,
+                    )
 
         return trace_groups(grid, groups(), None, dtype=np.float64, threads=1)

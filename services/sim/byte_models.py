@@ -2,6 +2,7 @@
 occupancy-grid deltas and OctoMap deltas, per scan (render.MEASUREMENT_NOTES, "Bytes", says why
 these and how each is counted). Replaying the beams also gives the cells each map snapshot had
 observed, on which the maps are graded."""
+
 from __future__ import annotations
 
 import importlib.util

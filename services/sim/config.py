@@ -1,5 +1,6 @@
 """The `sim` section of the configuration: one simulated fleet (`gmmap sim`); the robots' fit is
 the `fit` section and the server's reconstruction the `reconstruction` section."""
+
 from __future__ import annotations
 
 import math

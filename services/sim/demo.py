@@ -1,4 +1,5 @@
 """`gmmap demo`: a map server and three simulated robots in the office; the viewer shows the map grow."""
+
 from __future__ import annotations
 
 import json

@@ -4,6 +4,7 @@ Each robot's agent and the `gmmap sim` harness that grades the map build the fle
 same five numbers (world, robots, scans, rate, seed) and get the same paths, odometry and
 beams: nothing else crosses between the processes.
 """
+
 from __future__ import annotations
 
 import threading
@@ -36,7 +37,7 @@ class SimSource:
     seed: int = 0
 
     @staticmethod
-    def parse(text: str) -> "SimSource":
+    def parse(text: str) -> SimSource:
         parts = text.split(":")
         try:
             if len(parts) not in (4, 5) or parts[0] != "sim":
@@ -59,7 +60,7 @@ def correction_interval(rate: float) -> int:
     return max(1, round(CORRECTION_PERIOD_S * rate))
 
 
-def shared_fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> "SimulatedFleet":
+def shared_fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> SimulatedFleet:
     """One SimulatedFleet per process for robots of the same run (services.sim.robots), built once
     however many robot threads ask for it at the same time."""
     with _BUILDING:
@@ -67,7 +68,7 @@ def shared_fleet(world: str, robots: int, scans: int, rate: float, seed: int) ->
 
 
 @lru_cache(maxsize=4)
-def _fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> "SimulatedFleet":
+def _fleet(world: str, robots: int, scans: int, rate: float, seed: int) -> SimulatedFleet:
     return SimulatedFleet(world, robots, scans, rate, seed)
 
 
@@ -84,8 +85,9 @@ class SimulatedFleet:
         self.rate = rate
         self.seed = seed
         self.paths = plan_paths(self.world, robots, scans, seed, Motion(rate=rate))
-        self.odometry = [odometry(path, OdometryNoise(), np.random.default_rng([seed, 7, i]))
-                         for i, path in enumerate(self.paths)]
+        self.odometry = [
+            odometry(path, OdometryNoise(), np.random.default_rng([seed, 7, i])) for i, path in enumerate(self.paths)
+        ]
 
     @property
     def robots(self) -> int:
@@ -98,8 +100,15 @@ class SimulatedFleet:
         scans (0: never), so it equals what the robot knows when it publishes the scan.
         """
         noise_seed = int(np.random.SeedSequence([self.seed, 11, index]).generate_state(1)[0])
-        events = robot_events(self.world, self.sensor, self.paths[index], self.odometry[index],
-                              rate=self.rate, correct_every=correct_every, seed=noise_seed)
+        events = robot_events(
+            self.world,
+            self.sensor,
+            self.paths[index],
+            self.odometry[index],
+            rate=self.rate,
+            correct_every=correct_every,
+            seed=noise_seed,
+        )
         while True:
             with _SIMULATING:
                 kind, *event = next(events, (None,))

@@ -1,5 +1,6 @@
 """Grade a RunRecord: bytes against the alternatives, map AUROC against ground truth, latencies,
 processor time and memory, into a SimReport (render.MEASUREMENT_NOTES says how each is measured)."""
+
 from __future__ import annotations
 
 from collections import defaultdict
@@ -53,21 +54,24 @@ def wire_figures(record: RunRecord) -> tuple[dict, dict, dict]:
     return by_robot, seen, lags
 
 
-def robot_report(record: RunRecord, name: str, kinds: dict, sizes: dict, stored: int,
-                 lags: list[float]) -> RobotReport:
+def robot_report(record: RunRecord, name: str, kinds: dict, sizes: dict, stored: int, lags: list[float]) -> RobotReport:
     up, down = record.link_bytes.get(name, (0, 0))
     payload_up = kinds["scan"][1] + kinds["poses"][1]
     messages_up = kinds["scan"][0] + kinds["poses"][0]
     return RobotReport(
-        scans_published=record.published.get(name, 0), scans_stored=stored,
-        bytes_on_wire=up, bytes_on_wire_down=down,
+        scans_published=record.published.get(name, 0),
+        scans_stored=stored,
+        bytes_on_wire=up,
+        bytes_on_wire_down=down,
         payload_bytes={kind: kinds[kind][1] for kind in ("scan", "poses", "ack")},
         messages={kind: kinds[kind][0] for kind in ("scan", "poses", "ack")},
         scans_resent=max(0, kinds["scan"][0] - record.published.get(name, 0)),  # unacknowledged after 1 s
         framing_bytes_per_message=(up - payload_up) / messages_up if messages_up else None,
-        raw_scan_bytes=int(sizes["raw"].sum()), grid_delta_bytes=int(sizes["grid"].sum()),
+        raw_scan_bytes=int(sizes["raw"].sum()),
+        grid_delta_bytes=int(sizes["grid"].sum()),
         octomap_delta_bytes=int(sizes["octomap"].sum()) if "octomap" in sizes else None,
-        components=record.components.get(name, 0), ingest_lag_p99_s=percentile(lags, 99),
+        components=record.components.get(name, 0),
+        ingest_lag_p99_s=percentile(lags, 99),
         agent_exit=record.agent_exit.get(name),
     )
 
@@ -92,44 +96,74 @@ def grade(record: RunRecord) -> Grading:
     timeline = []
     for j, snap in enumerate(snapshots):
         served = np.load(snap.path)
-        timeline.append(AurocPoint(t_s=round(snap.t - t0, 2), scans=sum(stored_at[j].values()),
-                                   served=graded_auroc(served, truth, observed[j]),
-                                   published_estimates=graded_auroc(offline["published_estimates"][j], truth,
-                                                                    observed[j]),
-                                   odometry=graded_auroc(offline["odometry"][j], truth, observed[j])))
+        timeline.append(
+            AurocPoint(
+                t_s=round(snap.t - t0, 2),
+                scans=sum(stored_at[j].values()),
+                served=graded_auroc(served, truth, observed[j]),
+                published_estimates=graded_auroc(offline["published_estimates"][j], truth, observed[j]),
+                odometry=graded_auroc(offline["odometry"][j], truth, observed[j]),
+            )
+        )
     final_served = np.load(snapshots[-1].path)
 
-    robots = {name: robot_report(record, name, by_robot[name], per_scan[name], stored_at[-1].get(name, 0),
-                                 [lag for (r, _), lag in lags.items() if r == name]) for name in names}
+    robots = {
+        name: robot_report(
+            record,
+            name,
+            by_robot[name],
+            per_scan[name],
+            stored_at[-1].get(name, 0),
+            [lag for (r, _), lag in lags.items() if r == name],
+        )
+        for name in names
+    }
 
     def total(key):
         values = [getattr(r, key) for r in robots.values()]
         return None if any(v is None for v in values) else sum(values)
 
     all_lags = list(lags.values())
-    slip = [np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.rate
-            for n in names if np.isfinite(per_scan[n]["t"]).any()]
+    slip = [
+        np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.rate
+        for n in names
+        if np.isfinite(per_scan[n]["t"]).any()
+    ]
     busy = record.cpu_s["server"] + record.cpu_s["agents"]
     messages_up = sum(r.messages["scan"] + r.messages["poses"] for r in robots.values())
     payload_up = sum(r.payload_bytes["scan"] + r.payload_bytes["poses"] for r in robots.values())
     final = timeline[-1]
     report = SimReport(
-        world=o.world, dimension=grid.dim, robots=o.robots, duration_s=o.duration, rate_hz=o.rate,
-        seed=o.seed, http_clients=o.http_clients, component_size=record.config.fit.component_size,
+        world=o.world,
+        dimension=grid.dim,
+        robots=o.robots,
+        duration_s=o.duration,
+        rate_hz=o.rate,
+        seed=o.seed,
+        http_clients=o.http_clients,
+        component_size=record.config.fit.component_size,
         wall_s=round(record.wall_s, 2),
-        scans_published=total("scans_published"), scans_stored=total("scans_stored"),
+        scans_published=total("scans_published"),
+        scans_stored=total("scans_stored"),
         scans_resent=total("scans_resent"),
-        bytes_on_wire=total("bytes_on_wire"), bytes_on_wire_down=total("bytes_on_wire_down"),
+        bytes_on_wire=total("bytes_on_wire"),
+        bytes_on_wire_down=total("bytes_on_wire_down"),
         payload_bytes={k: sum(r.payload_bytes[k] for r in robots.values()) for k in ("scan", "poses", "ack")},
         framing_bytes_per_message=(total("bytes_on_wire") - payload_up) / messages_up if messages_up else None,
-        raw_scan_bytes=total("raw_scan_bytes"), grid_delta_bytes=total("grid_delta_bytes"),
-        octomap_delta_bytes=total("octomap_delta_bytes"), components=total("components"),
-        auroc=final.served, auroc_before_correction=final.odometry,
+        raw_scan_bytes=total("raw_scan_bytes"),
+        grid_delta_bytes=total("grid_delta_bytes"),
+        octomap_delta_bytes=total("octomap_delta_bytes"),
+        components=total("components"),
+        auroc=final.served,
+        auroc_before_correction=final.odometry,
         auroc_published_estimates=final.published_estimates,
-        auroc_resolution_m=grid.resolution, auroc_cells=int(observed[-1].sum()),
-        ingest_lag_p50_s=percentile(all_lags, 50), ingest_lag_p99_s=percentile(all_lags, 99),
+        auroc_resolution_m=grid.resolution,
+        auroc_cells=int(observed[-1].sum()),
+        ingest_lag_p50_s=percentile(all_lags, 50),
+        ingest_lag_p99_s=percentile(all_lags, 99),
         ingest_lag_max_s=max(all_lags, default=None),
-        tile_requests=len(record.tile_latencies), tile_errors=sum(record.tile_errors.values()),
+        tile_requests=len(record.tile_latencies),
+        tile_errors=sum(record.tile_errors.values()),
         tile_error_kinds=record.tile_errors,
         tile_latency_p50_s=percentile(record.tile_latencies, 50),
         tile_latency_p99_s=percentile(record.tile_latencies, 99),
@@ -138,7 +172,9 @@ def grade(record: RunRecord) -> Grading:
         schedule_slip_s=max(slip, default=None),
         **memory_growth(record.server_rss),
         server_rss_over_time=memory_series(record.server_rss, record.started),
-        per_robot=robots, auroc_over_time=timeline, config=record.config.to_dict(),
+        per_robot=robots,
+        auroc_over_time=timeline,
+        config=record.config.to_dict(),
     )
     maps = {"served": final_served, "odometry": offline["odometry"][-1], "truth": truth, "observed": observed[-1]}
     return Grading(report, per_scan, maps, t0)
@@ -148,11 +184,19 @@ def memory_growth(rss: list[tuple[float, int]]) -> dict:
     """Server resident memory when the robots start, at the end, at most, and the growth between."""
     rss = [b for _, b in rss if b]
     if not rss:
-        return {"server_rss_start_mb": None, "server_rss_end_mb": None, "server_rss_max_mb": None,
-                "server_rss_growth_mb": None}
+        return {
+            "server_rss_start_mb": None,
+            "server_rss_end_mb": None,
+            "server_rss_max_mb": None,
+            "server_rss_growth_mb": None,
+        }
     mb = [b / 2**20 for b in rss]
-    return {"server_rss_start_mb": mb[0], "server_rss_end_mb": mb[-1], "server_rss_max_mb": max(mb),
-            "server_rss_growth_mb": mb[-1] - mb[0]}
+    return {
+        "server_rss_start_mb": mb[0],
+        "server_rss_end_mb": mb[-1],
+        "server_rss_max_mb": max(mb),
+        "server_rss_growth_mb": mb[-1] - mb[0],
+    }
 
 
 def memory_series(rss: list[tuple[float, int]], started: float) -> list[tuple[float, float]]:

@@ -5,6 +5,7 @@ matplotlib is the optional extra `gmmap[sim]`: it is imported when a figure is d
 `gmmap sim` without --report runs without it, and `require_matplotlib` lets --report fail before
 the run rather than after it.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,8 +34,13 @@ def _pyplot():
 
     return plt
 
-STYLES = {"wire": ("-", "GMM on the wire"), "raw": ("--", "raw scans"), "grid": (":", "0.1 m grid deltas"),
-          "octomap": ("-.", "OctoMap .bt deltas")}
+
+STYLES = {
+    "wire": ("-", "GMM on the wire"),
+    "raw": ("--", "raw scans"),
+    "grid": (":", "0.1 m grid deltas"),
+    "octomap": ("-.", "OctoMap .bt deltas"),
+}
 
 
 def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
@@ -53,10 +59,12 @@ def bytes_over_time(path: Path, per_scan: dict, wire_times: dict) -> None:
             if key in series:
                 ax.step(series["t"][order], np.cumsum(series[key][order]), STYLES[key][0], where="post", color=colour)
     handles = [Line2D([], [], color=colours[i % len(colours)], label=robot) for i, robot in enumerate(per_scan)]
-    handles += [Line2D([], [], color="k", linestyle=style, label=label) for key, (style, label) in STYLES.items()
-                if key == "wire" or any(key in s for s in per_scan.values())]
-    ax.set(yscale="log", xlabel="time since the first scan (s)", ylabel="cumulative bytes",
-           title="Bytes per robot")
+    handles += [
+        Line2D([], [], color="k", linestyle=style, label=label)
+        for key, (style, label) in STYLES.items()
+        if key == "wire" or any(key in s for s in per_scan.values())
+    ]
+    ax.set(yscale="log", xlabel="time since the first scan (s)", ylabel="cumulative bytes", title="Bytes per robot")
     ax.legend(handles=handles, fontsize=8, ncol=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -68,15 +76,18 @@ def auroc_over_time(path: Path, timeline: list[AurocPoint], corrections: list[fl
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
     t = [row.t_s for row in timeline]
-    for key, label in (("served", "served map (pose-graph updates applied)"),
-                       ("published_estimates", "published estimates (updates withheld)"),
-                       ("odometry", "odometry only (no loop closure)")):
+    for key, label in (
+        ("served", "served map (pose-graph updates applied)"),
+        ("published_estimates", "published estimates (updates withheld)"),
+        ("odometry", "odometry only (no loop closure)"),
+    ):
         values = [getattr(row, key) for row in timeline]
         ax.plot(t, [np.nan if v is None else v for v in values], "o-", ms=3, label=label)
     for i, c in enumerate(corrections):
         ax.axvline(c, color="grey", lw=0.6, alpha=0.5, label="pose-graph update" if i == 0 else None)
-    ax.set(xlabel="time since the first scan (s)", ylabel="AUROC at 0.1 m vs ground truth",
-           title="Map quality over time")
+    ax.set(
+        xlabel="time since the first scan (s)", ylabel="AUROC at 0.1 m vs ground truth", title="Map quality over time"
+    )
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -86,14 +97,18 @@ def auroc_over_time(path: Path, timeline: list[AurocPoint], corrections: list[fl
 
 def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
     """Odometry-only map, served map and ground truth side by side; 3D: the horizontal slice at z."""
+
     def plane(a):
         if a.ndim == 2:
             return a
         return a[int(np.clip((z - grid.origin[2]) // grid.resolution, 0, a.shape[0] - 1))]
 
     truth = np.where(maps["observed"], maps["truth"].astype(float), 0.5)
-    panels = [("odometry only (before correction)", maps["odometry"]), ("served (after correction)", maps["served"]),
-              ("ground truth (observed cells)", truth)]
+    panels = [
+        ("odometry only (before correction)", maps["odometry"]),
+        ("served (after correction)", maps["served"]),
+        ("ground truth (observed cells)", truth),
+    ]
     extent = [grid.origin[0], grid.upper[0], grid.origin[1], grid.upper[1]]
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6 * (extent[3] - extent[2]) / (extent[1] - extent[0]) + 0.8))
@@ -112,8 +127,12 @@ def memory_over_time(path: Path, rss: list[tuple[float, float]]) -> None:
     if rss:
         t, mib = zip(*rss)
         ax.plot(t, mib, "-", color="k")
-    ax.set(xlabel="time since the robots started (s)", ylabel="resident memory (MiB)", title="Map server memory",
-           ylim=(0, None))
+    ax.set(
+        xlabel="time since the robots started (s)",
+        ylabel="resident memory (MiB)",
+        title="Map server memory",
+        ylim=(0, None),
+    )
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -1,4 +1,5 @@
 """`gmmap` subprocesses of a simulation or demo: a map server and robot agents, each logging to a file."""
+
 from __future__ import annotations
 
 import os
@@ -46,9 +47,14 @@ class Processes:
         with open(self.log_path(name), "ab") as log:
             self.log_start[name] = log.seek(0, os.SEEK_END)
             # A session of its own: Ctrl-C reaches the parent only, which stops the children in order.
-            proc = subprocess.Popen([sys.executable, "-m", module, *args], cwd=self.workdir,
-                                    env={**self.env, **(env or {})},
-                                    stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", module, *args],
+                cwd=self.workdir,
+                env={**self.env, **(env or {})},
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
         self.running[name] = proc
         return proc
 
@@ -57,36 +63,84 @@ class Processes:
         proc = self.running[name]
         deadline = time.monotonic() + timeout
         # Only this child's lines: a restarted one must not be taken for ready on its predecessor's banner.
-        while banner.encode() not in self.log_path(name).read_bytes()[self.log_start[name]:]:
+        while banner.encode() not in self.log_path(name).read_bytes()[self.log_start[name] :]:
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise OSError(f"{name} did not print {banner!r}:\n{self.log_tail(name)}")
             time.sleep(0.05)
         return proc
 
-    def server(self, zenoh_port: int | None, http: str, data_dir: Path, fleet: str = "default", *extra: str,
-               name: str = "server") -> subprocess.Popen:
+    def server(
+        self,
+        zenoh_port: int | None,
+        http: str,
+        data_dir: Path,
+        fleet: str = "default",
+        *extra: str,
+        name: str = "server",
+    ) -> subprocess.Popen:
         """A map server listening on `zenoh_port` (None: no listener; `extra` options say how it connects)."""
         listen = ("--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}") if zenoh_port is not None else ()
         self.start(name, "server", "--fleet", fleet, *listen, "--http", http, "--data-dir", str(data_dir), *extra)
         return self.wait_ready(name, SERVER_READY)
 
-    def agent(self, robot: str, source: str, zenoh_port: int, rate: float, scans: int,
-              fleet: str = "default", *extra: str) -> subprocess.Popen:
+    def agent(
+        self, robot: str, source: str, zenoh_port: int, rate: float, scans: int, fleet: str = "default", *extra: str
+    ) -> subprocess.Popen:
         """A simulated robot publishing its first `scans` scans at `rate` per second."""
-        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--fleet", fleet, "--source", source,
-                          "--scans", f"0:{scans}", "--rate", f"{rate:g}",
-                          "--zenoh-connect", f"tcp/127.0.0.1:{zenoh_port}",
-                          "--outbox", str(self.workdir / f"outbox-{robot}.db"), *extra)
+        return self.start(
+            f"agent-{robot}",
+            "agent",
+            "--robot",
+            robot,
+            "--fleet",
+            fleet,
+            "--source",
+            source,
+            "--scans",
+            f"0:{scans}",
+            "--rate",
+            f"{rate:g}",
+            "--zenoh-connect",
+            f"tcp/127.0.0.1:{zenoh_port}",
+            "--outbox",
+            str(self.workdir / f"outbox-{robot}.db"),
+            *extra,
+        )
 
-    def robots(self, name: str, members: list[tuple[int, int]], source: SimSource, rate: float, scans: int,
-               fleet: str = "default", *extra: str) -> subprocess.Popen:
+    def robots(
+        self,
+        name: str,
+        members: list[tuple[int, int]],
+        source: SimSource,
+        rate: float,
+        scans: int,
+        fleet: str = "default",
+        *extra: str,
+    ) -> subprocess.Popen:
         """Simulated robots (index, Zenoh port) of one fleet in one process (services.sim.robots)."""
-        return self.start(name, *(f"{i}:{port}" for i, port in members), "--world", source.world,
-                          "--robots", str(source.robots), "--seed", str(source.seed), "--fleet", fleet,
-                          "--scans", str(scans), "--rate", f"{rate:g}", "--workdir", str(self.workdir), *extra,
-                          # One numba thread per process: robots fit and simulate one scan at a time,
-                          # and idle OpenMP threads would spin on the cores the server needs.
-                          module="services.sim.robots", env={"NUMBA_NUM_THREADS": "1"})
+        return self.start(
+            name,
+            *(f"{i}:{port}" for i, port in members),
+            "--world",
+            source.world,
+            "--robots",
+            str(source.robots),
+            "--seed",
+            str(source.seed),
+            "--fleet",
+            fleet,
+            "--scans",
+            str(scans),
+            "--rate",
+            f"{rate:g}",
+            "--workdir",
+            str(self.workdir),
+            *extra,
+            # One numba thread per process: robots fit and simulate one scan at a time,
+            # and idle OpenMP threads would spin on the cores the server needs.
+            module="services.sim.robots",
+            env={"NUMBA_NUM_THREADS": "1"},
+        )
 
     def reap(self, name: str, block: bool = False) -> int | None:
         """The child's exit code once it has ended (its CPU time noted), else None."""

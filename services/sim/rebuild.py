@@ -1,5 +1,6 @@
 """The maps the server would have served without pose-graph updates, rebuilt offline with the
 server's own code (FleetMap) from the scan models it stored (render.MEASUREMENT_NOTES, "Maps")."""
+
 from __future__ import annotations
 
 from collections import defaultdict
@@ -18,8 +19,10 @@ def offline_maps(record: RunRecord, stored_at: list[dict[str, int]], progress) -
     """The published-estimate and odometry maps of the scans stored by each snapshot (server code)."""
     messages = {key: decode(raw, expect=ScanMessage) for key, raw in record.stored.items()}
     r = record.config.reconstruction  # as the server reconstructs
-    maps = {name: FleetMap(record.options.fleet, samples_per_cell=r.samples_per_cell, prior=r.prior)
-            for name in ("published_estimates", "odometry")}
+    maps = {
+        name: FleetMap(record.options.fleet, samples_per_cell=r.samples_per_cell, prior=r.prior)
+        for name in ("published_estimates", "odometry")
+    }
     robots = {robot_name(i): i for i in range(record.fleet.robots)}
     added: dict[str, int] = defaultdict(int)
     out: dict[str, list[np.ndarray]] = {name: [] for name in maps}

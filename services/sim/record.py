@@ -1,5 +1,6 @@
 """What one `gmmap sim` run observed (the RunRecord, with the configuration it ran), its map
 snapshots, and the graded box. services.sim.run fills a RunRecord; services.sim.grading reads it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

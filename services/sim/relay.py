@@ -1,4 +1,5 @@
 """A TCP relay that counts the bytes of one robot's link: Zenoh framing, keep-alives and all."""
+
 from __future__ import annotations
 
 import socket

@@ -1,4 +1,5 @@
 """report.md, report.json and the figures of a graded run, and the summary `gmmap sim` prints."""
+
 from __future__ import annotations
 
 import json
@@ -52,8 +53,7 @@ def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
     for name, robot in r.per_robot.items():
         events = [e for e in record.events if e.robot == name and e.kind in ("scan", "poses")]
         framing = robot.framing_bytes_per_message or 0.0
-        wire_times[name] = (np.array([e.t - grading.t0 for e in events]),
-                            np.array([e.size + framing for e in events]))
+        wire_times[name] = (np.array([e.t - grading.t0 for e in events]), np.array([e.size + framing for e in events]))
     corrections = sorted(e.t - grading.t0 for e in record.events if e.kind == "poses")
     plots.bytes_over_time(out / "bytes_over_time.png", grading.per_scan, wire_times)
     plots.auroc_over_time(out / "auroc_over_time.png", r.auroc_over_time, corrections)
@@ -71,8 +71,10 @@ def _fmt(value, digits: int = 4) -> str:
 
 def command_line(r: SimReport) -> str:
     fit = f" --component-size {r.component_size:g}" if r.component_size else ""
-    return (f"gmmap sim --world {r.world} --robots {r.robots} --duration {r.duration_s:g} "
-            f"--rate {r.rate_hz:g} --seed {r.seed} --http-clients {r.http_clients}{fit}")
+    return (
+        f"gmmap sim --world {r.world} --robots {r.robots} --duration {r.duration_s:g} "
+        f"--rate {r.rate_hz:g} --seed {r.seed} --http-clients {r.http_clients}{fit}"
+    )
 
 
 def markdown(r: SimReport) -> str:
@@ -85,14 +87,20 @@ def markdown(r: SimReport) -> str:
     cpu = " / ".join(str(r.cpu_s[k]) for k in ("server", "agents", "harness"))
     error_kinds = ", ".join(f"{k}: {n}" for k, n in r.tile_error_kinds.items())
     rows = [
-        ("scans published / stored / resent", " / ".join(_fmt(v) for v in (r.scans_published, r.scans_stored,
-                                                                           r.scans_resent))),
+        (
+            "scans published / stored / resent",
+            " / ".join(_fmt(v) for v in (r.scans_published, r.scans_stored, r.scans_resent)),
+        ),
         ("bytes on the wire, robots to server (measured TCP)", _fmt(r.bytes_on_wire)),
-        ("of which payload: scans / pose-graph updates",
-         f"{_fmt(r.payload_bytes['scan'])} / {_fmt(r.payload_bytes['poses'])}"),
+        (
+            "of which payload: scans / pose-graph updates",
+            f"{_fmt(r.payload_bytes['scan'])} / {_fmt(r.payload_bytes['poses'])}",
+        ),
         ("Zenoh framing per message (measured)", f"{_fmt(r.framing_bytes_per_message, 3)} B"),
-        ("bytes back, server to robots (measured TCP; Ack payloads)",
-         f"{_fmt(r.bytes_on_wire_down)} ({_fmt(r.payload_bytes['ack'])})"),
+        (
+            "bytes back, server to robots (measured TCP; Ack payloads)",
+            f"{_fmt(r.bytes_on_wire_down)} ({_fmt(r.payload_bytes['ack'])})",
+        ),
         ("raw scans", versus("raw_scan_bytes")),
         ("0.1 m grid deltas", versus("grid_delta_bytes")),
         ("OctoMap .bt deltas", versus("octomap_delta_bytes")),
@@ -102,30 +110,66 @@ def markdown(r: SimReport) -> str:
         ("AUROC, published estimates (updates withheld)", _fmt(r.auroc_published_estimates)),
         ("graded cells", _fmt(r.auroc_cells)),
         ("ingest lag p50 / p99 / max (s)", lag),
-        ("tiles fetched / errors; latency p50 / p99 (s)",
-         f"{_fmt(r.tile_requests)} / {_fmt(r.tile_errors)}{f' ({error_kinds})' if r.tile_errors else ''}; {tiles}"),
+        (
+            "tiles fetched / errors; latency p50 / p99 (s)",
+            f"{_fmt(r.tile_requests)} / {_fmt(r.tile_errors)}{f' ({error_kinds})' if r.tile_errors else ''}; {tiles}",
+        ),
         ("CPU s: server / agents / harness", cpu),
-        ("faster than real time (simulated s x cores / CPU s of server + agents)",
-         f"{_fmt(r.realtime_factor, 3)}x"),
+        ("faster than real time (simulated s x cores / CPU s of server + agents)", f"{_fmt(r.realtime_factor, 3)}x"),
         ("schedule slip (last scan later than planned, s)", _fmt(r.schedule_slip_s, 3)),
-        ("server memory (RSS) at start / end / max; growth (MiB)",
-         " / ".join(_fmt(v, 4) for v in (r.server_rss_start_mb, r.server_rss_end_mb, r.server_rss_max_mb))
-         + f"; {_fmt(r.server_rss_growth_mb, 3)}"),
+        (
+            "server memory (RSS) at start / end / max; growth (MiB)",
+            " / ".join(_fmt(v, 4) for v in (r.server_rss_start_mb, r.server_rss_end_mb, r.server_rss_max_mb))
+            + f"; {_fmt(r.server_rss_growth_mb, 3)}",
+        ),
     ]
-    lines = [f"# gmmap sim: {r.world}, {r.robots} robot(s), {r.duration_s:g} s at {r.rate_hz:g} Hz",
-             "", f"`{command_line(r)}`; wall time {r.wall_s:.1f} s.", "", "| measure | value |", "|---|---|"]
+    lines = [
+        f"# gmmap sim: {r.world}, {r.robots} robot(s), {r.duration_s:g} s at {r.rate_hz:g} Hz",
+        "",
+        f"`{command_line(r)}`; wall time {r.wall_s:.1f} s.",
+        "",
+        "| measure | value |",
+        "|---|---|",
+    ]
     lines += [f"| {measure} | {value} |" for measure, value in rows]
-    columns = [("scans_published", 4), ("scans_stored", 4), ("bytes_on_wire", 4), ("raw_scan_bytes", 4),
-               ("grid_delta_bytes", 4), ("octomap_delta_bytes", 4), ("framing_bytes_per_message", 3),
-               ("ingest_lag_p99_s", 3)]
-    lines += ["", "| robot | published | stored | wire bytes | raw | grid deltas | OctoMap | framing B/msg "
-              "| lag p99 s |", "|---|---|---|---|---|---|---|---|---|"]
-    lines += ["| " + " | ".join([name] + [_fmt(getattr(robot, key), digits) for key, digits in columns]) + " |"
-              for name, robot in r.per_robot.items()]
-    lines += ["", "![bytes over time](bytes_over_time.png)", "", "![AUROC over time](auroc_over_time.png)", "",
-              "![final map and ground truth](map_vs_truth.png)", "", "![server memory](server_memory.png)", "",
-              "## How it is measured", "", MEASUREMENT_NOTES.strip(), "",
-              "## Configuration", "", *configuration(r.config), ""]
+    columns = [
+        ("scans_published", 4),
+        ("scans_stored", 4),
+        ("bytes_on_wire", 4),
+        ("raw_scan_bytes", 4),
+        ("grid_delta_bytes", 4),
+        ("octomap_delta_bytes", 4),
+        ("framing_bytes_per_message", 3),
+        ("ingest_lag_p99_s", 3),
+    ]
+    lines += [
+        "",
+        "| robot | published | stored | wire bytes | raw | grid deltas | OctoMap | framing B/msg | lag p99 s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [
+        "| " + " | ".join([name] + [_fmt(getattr(robot, key), digits) for key, digits in columns]) + " |"
+        for name, robot in r.per_robot.items()
+    ]
+    lines += [
+        "",
+        "![bytes over time](bytes_over_time.png)",
+        "",
+        "![AUROC over time](auroc_over_time.png)",
+        "",
+        "![final map and ground truth](map_vs_truth.png)",
+        "",
+        "![server memory](server_memory.png)",
+        "",
+        "## How it is measured",
+        "",
+        MEASUREMENT_NOTES.strip(),
+        "",
+        "## Configuration",
+        "",
+        *configuration(r.config),
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -133,14 +177,33 @@ def configuration(config: dict) -> list[str]:
     """report.md lines of the resolved configuration (report.json's `config`)."""
     if not config:
         return ["None recorded (`config` in report.json is empty)."]
-    return ["The resolved configuration of the run, as `config` in report.json:", "", "```json",
-            json.dumps(config, indent=2), "```"]
+    return [
+        "The resolved configuration of the run, as `config` in report.json:",
+        "",
+        "```json",
+        json.dumps(config, indent=2),
+        "```",
+    ]
 
 
 def summary(report: SimReport) -> str:
     """What `gmmap sim` prints when it is done."""
-    keys = ["robots", "duration_s", "scans_published", "scans_stored", "bytes_on_wire", "raw_scan_bytes",
-            "grid_delta_bytes", "octomap_delta_bytes", "components", "auroc", "auroc_before_correction",
-            "ingest_lag_p99_s", "tile_latency_p99_s", "realtime_factor", "server_rss_growth_mb"]
+    keys = [
+        "robots",
+        "duration_s",
+        "scans_published",
+        "scans_stored",
+        "bytes_on_wire",
+        "raw_scan_bytes",
+        "grid_delta_bytes",
+        "octomap_delta_bytes",
+        "components",
+        "auroc",
+        "auroc_before_correction",
+        "ingest_lag_p99_s",
+        "tile_latency_p99_s",
+        "realtime_factor",
+        "server_rss_growth_mb",
+    ]
     values = {key: getattr(report, key) for key in keys}
     return "\n".join(f"{k:>24}: {v:.4g}" if isinstance(v, float) else f"{k:>24}: {v}" for k, v in values.items())

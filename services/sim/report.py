@@ -2,6 +2,7 @@
 order and their meaning are a contract read by scripts outside the repository, so fields are only
 ever added at the end (as `config` was), never renamed, reordered or dropped.
 How each figure is measured: render.MEASUREMENT_NOTES."""
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field

@@ -5,6 +5,7 @@ outbox and resender. Only the Python interpreter, numba's compiled fit and the s
 are shared: on one machine, twenty agent processes would spend most of a core on twenty
 interpreters and twenty copies of the world, a core the map server needs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,10 +38,19 @@ def main(argv: list[str] | None = None) -> int:
     def robot(index: int, port: int) -> None:
         name = robot_name(index)
         try:
-            codes[name] = run_agent(AgentConfig(
-                robot=name, source=str(SimSource(args.world, index, args.robots, args.seed)), fleet=args.fleet,
-                zenoh_connect=(f"tcp/127.0.0.1:{port}",), zenoh_config=args.zenoh_config, scans=f"0:{args.scans}",
-                rate=args.rate, outbox=str(args.workdir / f"outbox-{name}.db")), fit)
+            codes[name] = run_agent(
+                AgentConfig(
+                    robot=name,
+                    source=str(SimSource(args.world, index, args.robots, args.seed)),
+                    fleet=args.fleet,
+                    zenoh_connect=(f"tcp/127.0.0.1:{port}",),
+                    zenoh_config=args.zenoh_config,
+                    scans=f"0:{args.scans}",
+                    rate=args.rate,
+                    outbox=str(args.workdir / f"outbox-{name}.db"),
+                ),
+                fit,
+            )
         except Exception as error:  # noqa: BLE001 - one robot's failure is reported, the others go on
             print(f"robot {name}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)
             codes[name] = 2

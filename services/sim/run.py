@@ -8,6 +8,7 @@ the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch t
 every agent is done (all its scans acknowledged) the server stops and the record is graded
 (services.sim.grading) and, with --report, written out (services.sim.render).
 """
+
 from __future__ import annotations
 
 import io
@@ -29,12 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from gmm_core import Grid
+from services.config import GmmapConfig
 from services.host import cpu_cores
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
 from services.sim.processes import Processes, free_port
-from services.config import GmmapConfig
 from services.sim.record import RunRecord, Snapshot, evaluation_grid, slabs
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
@@ -50,8 +51,9 @@ def fetch_occupancy(base: str, grid: Grid) -> np.ndarray:
     arrays = []
     for slab in slabs(grid, SNAPSHOT_CELLS):
         bbox = ",".join(repr(float(v)) for v in (*slab.origin, *slab.upper))
-        with urllib.request.urlopen(f"{base}/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy",
-                                    timeout=300) as response:
+        with urllib.request.urlopen(
+            f"{base}/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy", timeout=300
+        ) as response:
             arrays.append(np.load(io.BytesIO(response.read())))
     return np.concatenate(arrays)
 
@@ -67,8 +69,9 @@ def tile_urls(base: str, grid: Grid) -> list[str]:
                 lo, hi = [ix * size, iy * size], [(ix + 1) * size, (iy + 1) * size]
                 if grid.dim == 3:
                     lo, hi = lo + [grid.origin[2]], hi + [grid.upper[2]]
-                urls.append(f"{base}/v1/occupancy?bbox={','.join(f'{v:.4f}' for v in lo + hi)}"
-                            f"&resolution={res}&format=png")
+                urls.append(
+                    f"{base}/v1/occupancy?bbox={','.join(f'{v:.4f}' for v in lo + hi)}&resolution={res}&format=png"
+                )
     return urls
 
 
@@ -134,8 +137,10 @@ def published_scans(outbox: Path) -> int:
     """Scans the agent sent: acknowledged ones plus any still waiting in its outbox."""
     db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
     try:
-        return db.execute("SELECT (SELECT COUNT(*) FROM acked WHERE kind = 'scan') + "
-                          "(SELECT COUNT(*) FROM outbox WHERE kind = 'scan')").fetchone()[0]
+        return db.execute(
+            "SELECT (SELECT COUNT(*) FROM acked WHERE kind = 'scan') + "
+            "(SELECT COUNT(*) FROM outbox WHERE kind = 'scan')"
+        ).fetchone()[0]
     finally:
         db.close()
 
@@ -174,14 +179,23 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
         # around the link; a robot's radio link has no such shortcut.
         no_shm = workdir / "agent-zenoh.json5"
-        no_shm.write_text('{transport: {shared_memory: {enabled: false}}}')
+        no_shm.write_text("{transport: {shared_memory: {enabled: false}}}")
         for name in names:
             relays[name] = CountingRelay(zport)
         groups = robot_groups(o.robots)
         for g, members in enumerate(groups):
-            procs.robots(f"robots-{g}", [(i, relays[names[i]].port) for i in members],
-                         SimSource(o.world, 0, o.robots, o.seed), o.rate, o.scans, o.fleet,
-                         "--zenoh-config", str(no_shm), "--config", str(settings))
+            procs.robots(
+                f"robots-{g}",
+                [(i, relays[names[i]].port) for i in members],
+                SimSource(o.world, 0, o.robots, o.seed),
+                o.rate,
+                o.scans,
+                o.fleet,
+                "--zenoh-config",
+                str(no_shm),
+                "--config",
+                str(settings),
+            )
         group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
         if o.http_clients:
             clients = TileClients(tile_urls(base, grid), o.http_clients)
@@ -201,8 +215,10 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         deadline = time.monotonic() + o.duration + ACK_TIMEOUT_S + 60
         next_snapshot = time.monotonic() + every
         total = o.robots * o.scans
-        with tqdm(total=total, desc="published", unit="scan", file=sys.stderr) as published, \
-                tqdm(total=total, desc="stored", unit="scan", file=sys.stderr) as stored:
+        with (
+            tqdm(total=total, desc="published", unit="scan", file=sys.stderr) as published,
+            tqdm(total=total, desc="stored", unit="scan", file=sys.stderr) as stored,
+        ):
             while any(procs.reap(g) is None for g in set(group_of.values())) and time.monotonic() < deadline:
                 if stored.n and time.monotonic() >= next_snapshot:
                     next_snapshot = time.monotonic() + max(every, 3 * snapshot())
@@ -230,9 +246,11 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}
         record.stored = stored_scans(workdir / "data", o.fleet)
         usage = resource.getrusage(resource.RUSAGE_SELF)
-        record.cpu_s = {"server": procs.cpu_s["server"],
-                        "agents": sum(procs.cpu_s[g] for g in set(group_of.values())),
-                        "harness": usage.ru_utime + usage.ru_stime - cpu_before}
+        record.cpu_s = {
+            "server": procs.cpu_s["server"],
+            "agents": sum(procs.cpu_s[g] for g in set(group_of.values())),
+            "harness": usage.ru_utime + usage.ru_stime - cpu_before,
+        }
         return record
     finally:
         if clients is not None:

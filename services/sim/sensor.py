@@ -1,4 +1,5 @@
 """Simulated range sensors: a 2D laser scanner and a 16-ring spinning 3D lidar, with range noise."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -50,12 +51,15 @@ def beam_directions(sensor: Sensor) -> np.ndarray:
         directions = np.column_stack([np.cos(angle), np.sin(angle)])
     else:
         # Firing order: all rings at one azimuth, then the next azimuth.
-        azimuth, elevation = np.meshgrid(np.arange(sensor.azimuth_steps) * (2 * np.pi / sensor.azimuth_steps),
-                                         np.radians(np.linspace(-sensor.elevation_deg, sensor.elevation_deg,
-                                                                sensor.rings)), indexing="ij")
+        azimuth, elevation = np.meshgrid(
+            np.arange(sensor.azimuth_steps) * (2 * np.pi / sensor.azimuth_steps),
+            np.radians(np.linspace(-sensor.elevation_deg, sensor.elevation_deg, sensor.rings)),
+            indexing="ij",
+        )
         azimuth, elevation = azimuth.ravel(), elevation.ravel()
-        directions = np.column_stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                                      np.sin(elevation)])
+        directions = np.column_stack(
+            [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+        )
     directions.setflags(write=False)
     return directions
 
@@ -65,8 +69,16 @@ def sensor_for(world: World) -> Sensor:
     return Laser2D() if world.dim == 2 else Lidar3D()
 
 
-def simulate_scan(world: World, sensor: Sensor, pose: Pose, rng: np.random.Generator, *,
-                  index: int = 0, stamp: float = 0.0, odom_pose: Pose | None = None) -> RangeScan:
+def simulate_scan(
+    world: World,
+    sensor: Sensor,
+    pose: Pose,
+    rng: np.random.Generator,
+    *,
+    index: int = 0,
+    stamp: float = 0.0,
+    odom_pose: Pose | None = None,
+) -> RangeScan:
     """One scan from the sensor at the true `pose`: noisy hits and no-return directions, sensor frame."""
     if sensor.dim != world.dim or pose.dim != world.dim:
         raise ValueError(f"sensor and pose must be {world.dim}D in the {world.name} world")
@@ -74,6 +86,11 @@ def simulate_scan(world: World, sensor: Sensor, pose: Pose, rng: np.random.Gener
     ranges = world.cast(pose.t, directions @ pose.R.T, sensor.max_range)
     hit = np.isfinite(ranges)
     measured = ranges[hit] + rng.normal(0.0, sensor.noise, int(hit.sum()))
-    return RangeScan(index=index, stamp=stamp, pose=pose, odom_pose=odom_pose,
-                     hits=np.ascontiguousarray(directions[hit] * measured[:, None]),
-                     no_return=np.ascontiguousarray(directions[~hit]))
+    return RangeScan(
+        index=index,
+        stamp=stamp,
+        pose=pose,
+        odom_pose=odom_pose,
+        hits=np.ascontiguousarray(directions[hit] * measured[:, None]),
+        no_return=np.ascontiguousarray(directions[~hit]),
+    )

@@ -1,4 +1,5 @@
 """A Zenoh client on the map server that notes every scan, pose-graph update and Ack of a fleet."""
+
 from __future__ import annotations
 
 import threading

@@ -6,6 +6,7 @@ grid of cells at least `clearance` from any solid, shortened by line-of-sight sh
 stay in such cells. So every point of a path keeps the clearance. Poses are sampled at
 `speed / rate` spacing; heading follows the direction of travel.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -47,6 +48,7 @@ class OdometryNoise:
 
 
 # --- grid search kernels (grids are (nz, ny, nx); a 2D grid has nz = 1) ------------------------
+
 
 @njit(cache=True)
 def _label_components(free, offsets):
@@ -163,6 +165,7 @@ def _offsets(dim: int) -> np.ndarray:
 
 # --- paths -------------------------------------------------------------------------------------
 
+
 def plan_paths(world: World, robots: int, scans: int, seed: int = 0, motion: Motion = Motion()) -> list[np.ndarray]:
     """True poses of each robot: (scans, 3) rows x, y, yaw in 2D; (scans, 4) x, y, z, yaw in 3D.
 
@@ -185,7 +188,7 @@ def plan_paths(world: World, robots: int, scans: int, seed: int = 0, motion: Mot
     paths = []
     for _ in range(robots):
         path = _explore(free, grid.origin, grid.resolution, region, offsets, rng, scans, motion, visited)
-        visited = np.concatenate([visited, path[:, :world.dim]])
+        visited = np.concatenate([visited, path[:, : world.dim]])
         paths.append(path)
     return paths
 
@@ -203,7 +206,7 @@ def _explore(free, origin, cell, region, offsets, rng, scans, motion, visited) -
         if len(seen) == 0:
             return options[0]
         pts = centre(options)
-        gap = np.min(np.linalg.norm(pts[:, None] - seen[None, ::max(1, len(seen) // 500)], axis=-1), axis=1)
+        gap = np.min(np.linalg.norm(pts[:, None] - seen[None, :: max(1, len(seen) // 500)], axis=-1), axis=1)
         return options[np.argmax(gap)]
 
     here = farthest(visited)
@@ -240,6 +243,7 @@ def _sample_polyline(corners: np.ndarray, spacing: float, offset: float, yaw: fl
 
 # --- odometry and events -----------------------------------------------------------------------
 
+
 def _rotate(xy: np.ndarray, angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.column_stack([c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]])
@@ -272,8 +276,9 @@ def path_pose(row: np.ndarray) -> Pose:
     return Pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), row[:3])
 
 
-def robot_events(world: World, sensor: Sensor, path: np.ndarray, odom: np.ndarray, *, rate: float,
-                 correct_every: int, seed: int) -> Iterator[tuple]:
+def robot_events(
+    world: World, sensor: Sensor, path: np.ndarray, odom: np.ndarray, *, rate: float, correct_every: int, seed: int
+) -> Iterator[tuple]:
     """A robot's run as events, in order:
 
     ("scan", RangeScan): node = scan.index, `pose` the true pose, `odom_pose` the robot's own
@@ -286,8 +291,10 @@ def robot_events(world: World, sensor: Sensor, path: np.ndarray, odom: np.ndarra
     odo = [path_pose(row) for row in odom]
     to_estimate = Pose.identity(world.dim)  # maps odometry onto the estimate; reset by corrections
     for k in range(len(path)):
-        yield "scan", simulate_scan(world, sensor, true[k], rng, index=k, stamp=k / rate,
-                                    odom_pose=to_estimate.compose(odo[k]))
+        yield (
+            "scan",
+            simulate_scan(world, sensor, true[k], rng, index=k, stamp=k / rate, odom_pose=to_estimate.compose(odo[k])),
+        )
         if correct_every and (k + 1) % correct_every == 0:
             yield "correction", (k + 1) // correct_every, [(j, true[j]) for j in range(k + 1)]
             to_estimate = true[k].compose(odo[k].inverse())

@@ -4,6 +4,7 @@ A world *is* its raster: each cell is solid or free, and everything outside the 
 Ray casting, `occupied` and `ground_truth` all read that one array, so a simulated beam ends
 exactly where the ground truth says it does. Generators are seeded: the same seed, the same world.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -124,8 +125,14 @@ class World:
     def cast(self, origin: np.ndarray, directions: np.ndarray, max_range: float) -> np.ndarray:
         """(n,) distances along unit `directions` from `origin` to the first solid cell; inf past max_range."""
         mid_plane = 0.5 * self.raster.resolution  # 2D rays run along the middle of the one-cell layer
-        return _cast(self._solid_zyx(), self._as_3d(self.raster.origin, 0.0)[0], self.raster.resolution,
-                     self._as_3d(origin, mid_plane)[0], self._as_3d(directions, 0.0), float(max_range))
+        return _cast(
+            self._solid_zyx(),
+            self._as_3d(self.raster.origin, 0.0)[0],
+            self.raster.resolution,
+            self._as_3d(origin, mid_plane)[0],
+            self._as_3d(directions, 0.0),
+            float(max_range),
+        )
 
     def solid_near(self, grid: Grid, margin: float = 0.0) -> np.ndarray:
         """Bool over `grid.array_shape`: whether the cell, grown by `margin`, overlaps a solid cell."""
@@ -171,6 +178,7 @@ def planning_cell(dim: int) -> float:
 
 # --- generators ------------------------------------------------------------------------------
 
+
 def _box(solid: np.ndarray, raster: Grid, lo, hi, value: bool) -> None:
     """Set the raster cells whose centres lie in the box [lo, hi] (x, y[, z] order)."""
     first = np.round((np.asarray(lo) - raster.origin) / raster.resolution).astype(np.int64)
@@ -180,8 +188,9 @@ def _box(solid: np.ndarray, raster: Grid, lo, hi, value: bool) -> None:
     solid[tuple(slice(f, l) for f, l in zip(first[::-1], last[::-1]))] = value
 
 
-def _spans(rng: np.random.Generator, x0: float, x1: float, width: tuple[float, float],
-           gap: tuple[float, float]) -> list[tuple[float, float]]:
+def _spans(
+    rng: np.random.Generator, x0: float, x1: float, width: tuple[float, float], gap: tuple[float, float]
+) -> list[tuple[float, float]]:
     """Split [x0, x1] into pieces of `width` separated by gaps of `gap`; the last piece takes the rest."""
     spans, x = [], x0
     while x1 - x > 2 * width[0] + gap[1]:
@@ -208,8 +217,12 @@ def office(seed: int = 0, size: tuple[float, float] = (40.0, 30.0)) -> World:
     _box(solid, raster, (cross, low), (cross + corridor, high + corridor), False)
     t = rng.uniform(*wall, size=4)
     # Rows of rooms: (y0, y1, y of the corridor edge their doors open onto).
-    rows = [(outer, low - t[0], low), (low + corridor + t[1], middle - 0.06, low + corridor),
-            (middle + 0.06, high - t[2], high), (high + corridor + t[3], height - outer, high + corridor)]
+    rows = [
+        (outer, low - t[0], low),
+        (low + corridor + t[1], middle - 0.06, low + corridor),
+        (middle + 0.06, high - t[2], high),
+        (high + corridor + t[3], height - outer, high + corridor),
+    ]
     for i, (y0, y1, door_y) in enumerate(rows):
         pieces = [(outer, width - outer)]
         if i in (1, 2):  # the cross corridor splits the middle rows
@@ -290,17 +303,31 @@ def mine(seed: int = 0, size: tuple[float, float, float] = (80.0, 80.0, 10.0)) -
     solid = np.ones(raster.array_shape, dtype=bool)
     n = 4
     spacing = (size[:2] - 16.0) / (n - 1)
-    nodes = {(i, j): np.array([8.0 + i * spacing[0] + rng.uniform(-3, 3), 8.0 + j * spacing[1] + rng.uniform(-3, 3),
-                               rng.uniform(0.4, 0.6) * size[2]]) for i in range(n) for j in range(n)}
+    nodes = {
+        (i, j): np.array(
+            [
+                8.0 + i * spacing[0] + rng.uniform(-3, 3),
+                8.0 + j * spacing[1] + rng.uniform(-3, 3),
+                rng.uniform(0.4, 0.6) * size[2],
+            ]
+        )
+        for i in range(n)
+        for j in range(n)
+    }
     edges = _lattice_tunnels(rng, n, loops=2)
-    octaves = [(1.0, 0.25, rng.uniform(-1, 1, size=tuple((size / 1.0).astype(int) + 2))),
-               (0.35, 0.08, rng.uniform(-1, 1, size=tuple((size / 0.35).astype(int) + 2)))]
+    octaves = [
+        (1.0, 0.25, rng.uniform(-1, 1, size=tuple((size / 1.0).astype(int) + 2))),
+        (0.35, 0.08, rng.uniform(-1, 1, size=tuple((size / 0.35).astype(int) + 2))),
+    ]
     for a, b in edges:
         radius = rng.uniform(1.5, 2.0)
         lateral = np.cross(nodes[b] - nodes[a], [0, 0, 1.0])
         lateral /= np.linalg.norm(lateral)
-        joints = [nodes[a]] + [nodes[a] + f * (nodes[b] - nodes[a]) + rng.uniform(-1.5, 1.5) * lateral
-                               for f in (1 / 3, 2 / 3)] + [nodes[b]]
+        joints = (
+            [nodes[a]]
+            + [nodes[a] + f * (nodes[b] - nodes[a]) + rng.uniform(-1.5, 1.5) * lateral for f in (1 / 3, 2 / 3)]
+            + [nodes[b]]
+        )
         for p, q in zip(joints[:-1], joints[1:]):
             _carve_capsule(solid, raster, p, q, radius, octaves)
     return World("mine", raster, solid)
@@ -338,7 +365,7 @@ def _carve_capsule(solid, raster: Grid, p, q, radius: float, octaves) -> None:
     dx, dy, dz = x - (p[0] + t * axis[0]), y - (p[1] + t * axis[1]), z - (p[2] + t * axis[2])
     rough = sum(amplitude * _value_noise(lattice, spacing, x, y, z) for spacing, amplitude, lattice in octaves)
     free = (dx * dx + dy * dy + dz * dz < (radius + rough) ** 2) & (dz > -0.7 * radius + 0.3 * rough)
-    block = solid[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    block = solid[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]]
     block &= ~free
 
 

@@ -1,4 +1,5 @@
 """The HTTP API and the web viewer, against a real uvicorn server on 127.0.0.1 and real Intel scans."""
+
 from __future__ import annotations
 
 import io
@@ -101,29 +102,32 @@ def test_same_query_same_bytes(server):
     assert get(url)[2] == get(url)[2]
 
 
-@pytest.mark.parametrize("query, field, words", [
-    ("bbox=0,0,1,1&resolution=0.001", "resolution", "0.005"),
-    ("bbox=0,0,1,1&resolution=11", "resolution", "10"),
-    ("bbox=0,0,1,1&resolution=nan", "resolution", "between"),
-    ("bbox=0,0,1,1&resolution=abc", "resolution", ""),
-    ("bbox=-1000,-1000,1000,1000&resolution=0.05", "bbox", "16,000,000"),
-    ("bbox=-1e300,-1e300,1e300,1e300&resolution=0.05", "bbox", "16,000,000"),
-    ("bbox=-1.7e308,0,1.7e308,1&resolution=0.05", "bbox", "16,000,000"),
-    ("bbox=0,0,1&resolution=0.1", "bbox", "4 numbers"),
-    ("bbox=0,0,nan,1&resolution=0.1", "bbox", "finite"),
-    ("bbox=0,0,inf,1&resolution=0.1", "bbox", "finite"),
-    ("bbox=0,a,1,1&resolution=0.1", "bbox", "numbers"),
-    ("bbox=1,0,0,1&resolution=0.1", "bbox", "exceed"),
-    ("bbox=0,0,0,1,1,1&resolution=0.1", "bbox", "2D"),
-    ("bbox=0,0,1,1&resolution=0.1&format=tiff", "format", "npy"),
-    ("bbox=0,0,1,1&resolution=0.1&robots=bad%20name", "robots", "A-Za-z0-9"),
-    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=0.26", "variance", "between 0.0 and 0.25"),
-    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=-0.01", "variance", "between 0.0 and 0.25"),
-    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=nan", "variance", "between 0.0 and 0.25"),
-    ("bbox=0,0,1,1&resolution=0.1&format=png&variance=abc", "variance", ""),
-    ("bbox=0,0,1,1&resolution=0.1&format=png&shade=colour", "shade", "classes"),
-    ("resolution=0.1", "bbox", ""),
-])
+@pytest.mark.parametrize(
+    "query, field, words",
+    [
+        ("bbox=0,0,1,1&resolution=0.001", "resolution", "0.005"),
+        ("bbox=0,0,1,1&resolution=11", "resolution", "10"),
+        ("bbox=0,0,1,1&resolution=nan", "resolution", "between"),
+        ("bbox=0,0,1,1&resolution=abc", "resolution", ""),
+        ("bbox=-1000,-1000,1000,1000&resolution=0.05", "bbox", "16,000,000"),
+        ("bbox=-1e300,-1e300,1e300,1e300&resolution=0.05", "bbox", "16,000,000"),
+        ("bbox=-1.7e308,0,1.7e308,1&resolution=0.05", "bbox", "16,000,000"),
+        ("bbox=0,0,1&resolution=0.1", "bbox", "4 numbers"),
+        ("bbox=0,0,nan,1&resolution=0.1", "bbox", "finite"),
+        ("bbox=0,0,inf,1&resolution=0.1", "bbox", "finite"),
+        ("bbox=0,a,1,1&resolution=0.1", "bbox", "numbers"),
+        ("bbox=1,0,0,1&resolution=0.1", "bbox", "exceed"),
+        ("bbox=0,0,0,1,1,1&resolution=0.1", "bbox", "2D"),
+        ("bbox=0,0,1,1&resolution=0.1&format=tiff", "format", "npy"),
+        ("bbox=0,0,1,1&resolution=0.1&robots=bad%20name", "robots", "A-Za-z0-9"),
+        ("bbox=0,0,1,1&resolution=0.1&format=png&variance=0.26", "variance", "between 0.0 and 0.25"),
+        ("bbox=0,0,1,1&resolution=0.1&format=png&variance=-0.01", "variance", "between 0.0 and 0.25"),
+        ("bbox=0,0,1,1&resolution=0.1&format=png&variance=nan", "variance", "between 0.0 and 0.25"),
+        ("bbox=0,0,1,1&resolution=0.1&format=png&variance=abc", "variance", ""),
+        ("bbox=0,0,1,1&resolution=0.1&format=png&shade=colour", "shade", "classes"),
+        ("resolution=0.1", "bbox", ""),
+    ],
+)
 def test_bad_requests_are_422_json(server, fleet_map, query, field, words):
     before = fleet_map.cache_stats()
     status, headers, body = get(f"{server.url}/v1/occupancy?{query}")
@@ -170,28 +174,34 @@ def test_points(server, fleet_map):
     assert json.loads(body)["probabilities"][2] == 0.5
 
 
-@pytest.mark.parametrize("query, field", [
-    ("xy=" + ",".join(["1"] * 20_002) + "&resolution=0.1", "xy"),
-    ("xy=1,2,3&resolution=0.1", "xy"),
-    ("xy=1,nan&resolution=0.1", "xy"),
-    ("xy=1e300,0&resolution=0.1", "xy"),
-    ("xyz=1,2,3&resolution=0.1", "xyz"),
-    ("resolution=0.1", "xy"),
-    ("xy=1,2&resolution=0", "resolution"),
-])
+@pytest.mark.parametrize(
+    "query, field",
+    [
+        ("xy=" + ",".join(["1"] * 20_002) + "&resolution=0.1", "xy"),
+        ("xy=1,2,3&resolution=0.1", "xy"),
+        ("xy=1,nan&resolution=0.1", "xy"),
+        ("xy=1e300,0&resolution=0.1", "xy"),
+        ("xyz=1,2,3&resolution=0.1", "xyz"),
+        ("resolution=0.1", "xy"),
+        ("xy=1,2&resolution=0", "resolution"),
+    ],
+)
 def test_bad_points(server, query, field):
     status, _, body = get(f"{server.url}/v1/occupancy/points?{query}")
     assert status == 422 and json.loads(body)["field"] == field, body
 
 
-@pytest.mark.parametrize("payload, field", [
-    ({"points": [[0, 0]]}, "resolution"),
-    ({"points": [[0, "a"]], "resolution": 0.1}, "points.0.1"),
-    ({"points": [[0, 0, 0]], "resolution": 0.1}, "points"),
-    ({"points": [], "resolution": 0.1}, "points"),
-    ({"points": [[0, 0]], "resolution": 0.1, "robots": ["a,b"]}, "robots"),
-    ("not an object", None),
-])
+@pytest.mark.parametrize(
+    "payload, field",
+    [
+        ({"points": [[0, 0]]}, "resolution"),
+        ({"points": [[0, "a"]], "resolution": 0.1}, "points.0.1"),
+        ({"points": [[0, 0, 0]], "resolution": 0.1}, "points"),
+        ({"points": [], "resolution": 0.1}, "points"),
+        ({"points": [[0, 0]], "resolution": 0.1, "robots": ["a,b"]}, "robots"),
+        ("not an object", None),
+    ],
+)
 def test_bad_points_by_post(server, payload, field):
     status, body = post(f"{server.url}/v1/occupancy/points", payload)
     assert status == 422 and json.loads(body)["field"] == field, body
@@ -233,8 +243,14 @@ def test_health_metrics_docs(server):
     status, headers, body = get(f"{server.url}/metrics")
     assert status == 200 and headers["Content-Type"].startswith("text/plain; version=0.0.4")
     text = body.decode()
-    for name in ("gmmap_query_seconds_bucket", "gmmap_query_seconds_count", "gmmap_cache_hits_total",
-                 "gmmap_cache_misses_total", "gmmap_messages_accepted", "gmmap_bytes_received"):
+    for name in (
+        "gmmap_query_seconds_bucket",
+        "gmmap_query_seconds_count",
+        "gmmap_cache_hits_total",
+        "gmmap_cache_misses_total",
+        "gmmap_messages_accepted",
+        "gmmap_bytes_received",
+    ):
         assert name in text, name
     hits = float(next(line.split()[1] for line in text.splitlines() if line.startswith("gmmap_cache_hits_total")))
     assert hits >= 1
@@ -268,6 +284,7 @@ def test_queries_do_not_block_the_event_loop(server):
 
 # -- the web viewer in headless Chromium ------------------------------------------------------
 
+
 def test_viewer_is_served(server):
     status, headers, body = get(f"{server.url}/")
     assert status == 200 and headers["Content-Type"].startswith("text/html")
@@ -276,25 +293,41 @@ def test_viewer_is_served(server):
 
 
 def headless_chromium(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    command = ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600",
-               "--hide-scrollbars", "--virtual-time-budget=8000", *args]
+    command = [
+        "chromium",
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-dev-shm-usage",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        "--window-size=800,600",
+        "--hide-scrollbars",
+        "--virtual-time-budget=8000",
+        *args,
+    ]
     return subprocess.run(command, capture_output=True, timeout=120, check=False)
 
 
-@pytest.mark.skipif(shutil.which("chromium") is None,
-                    reason="Debian chromium is not on PATH (make test installs it when run as root)")
+@pytest.mark.skipif(
+    shutil.which("chromium") is None, reason="Debian chromium is not on PATH (make test installs it when run as root)"
+)
 def test_api_docs_render_offline(server, tmp_path):
     """Swagger UI's scripts come from the server itself: the page lists the API with no network beyond it."""
     dom = headless_chromium(tmp_path, "--dump-dom", f"{server.url}/docs").stdout.decode()
     assert "/v1/occupancy/points" in dom and "opblock" in dom, dom[-2000:]
 
 
-@pytest.mark.skipif(shutil.which("chromium") is None,
-                    reason="Debian chromium is not on PATH (make test installs it when run as root)")
-@pytest.mark.parametrize("query, occupied_at_least", [("", 0.0003), ("?variance=0.25", 0.003),
-                                                        ("?shade=probability", 0.003)])
+@pytest.mark.skipif(
+    shutil.which("chromium") is None, reason="Debian chromium is not on PATH (make test installs it when run as root)"
+)
+@pytest.mark.parametrize(
+    "query, occupied_at_least", [("", 0.0003), ("?variance=0.25", 0.003), ("?shade=probability", 0.003)]
+)
 def test_viewer_draws_the_map(server, tmp_path, query, occupied_at_least):
     """The Eq. 12 classes (the default layer, at the default and at a chosen variance) and the probabilities."""
     shot = tmp_path / "viewer.png"

@@ -1,5 +1,6 @@
 """The HTTP API under hostile input: an API fuzzer against its own OpenAPI, request size limits,
 work refused before it starts, CORS off. Real uvicorn on 127.0.0.1, a small Intel map."""
+
 from __future__ import annotations
 
 import json
@@ -41,17 +42,35 @@ def server(intel_scans):
 def test_schemathesis_finds_no_server_error_and_no_schema_violation(server, tmp_path):
     """Every check but positive_data_acceptance: the API rejects schema-valid requests that break
     rules OpenAPI cannot state (lo < hi, the cell limit, one dimension per map), by design."""
-    command = [str(SCHEMATHESIS), "run", f"{server.url}/openapi.json", "--checks", "all",
-               "--exclude-checks", "positive_data_acceptance", "--max-examples", "25", "--seed", "7",
-               "--request-timeout", "20", "--workers", "1"]
+    command = [
+        str(SCHEMATHESIS),
+        "run",
+        f"{server.url}/openapi.json",
+        "--checks",
+        "all",
+        "--exclude-checks",
+        "positive_data_acceptance",
+        "--max-examples",
+        "25",
+        "--seed",
+        "7",
+        "--request-timeout",
+        "20",
+        "--workers",
+        "1",
+    ]
     run = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=170)
     assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
     assert "passed" in run.stdout
 
 
 def test_errors_are_json_with_the_documented_schema(server):
-    for method, path, code in (("TRACE", "/healthz", 405), ("OPTIONS", "/v1/occupancy/points", 405),
-                               ("GET", "/nowhere", 404), ("GET", "/v1/occupancy?bbox=1,2,3", 422)):
+    for method, path, code in (
+        ("TRACE", "/healthz", 405),
+        ("OPTIONS", "/v1/occupancy/points", 405),
+        ("GET", "/nowhere", 404),
+        ("GET", "/v1/occupancy?bbox=1,2,3", 422),
+    ):
         request = urllib.request.Request(f"{server.url}{path}", method=method)
         try:
             urllib.request.urlopen(request, timeout=10)
@@ -67,9 +86,11 @@ def test_errors_are_json_with_the_documented_schema(server):
 
 
 def test_oversized_requests_are_refused_before_any_work(server):
-    queries = ["bbox=-1e6,-1e6,1e6,1e6&resolution=0.005",  # 1.6e17 cells
-               "bbox=-1e300,-1e300,1e300,1e300&resolution=0.005",
-               "bbox=0,0,429496729.6,429496729.6&resolution=0.1"]  # 2^64 cells: int64 would wrap to 0
+    queries = [
+        "bbox=-1e6,-1e6,1e6,1e6&resolution=0.005",  # 1.6e17 cells
+        "bbox=-1e300,-1e300,1e300,1e300&resolution=0.005",
+        "bbox=0,0,429496729.6,429496729.6&resolution=0.1",
+    ]  # 2^64 cells: int64 would wrap to 0
     for query in queries:
         before = server.fleet_map.cache_stats()
         status, _, body = get(f"{server.url}/v1/occupancy?{query}")
@@ -81,8 +102,11 @@ def test_cors_is_off_by_default(server):
     request = urllib.request.Request(f"{server.url}/v1/robots", headers={"Origin": "http://evil.example"})
     with urllib.request.urlopen(request, timeout=10) as reply:
         assert reply.status == 200 and "Access-Control-Allow-Origin" not in reply.headers
-    preflight = urllib.request.Request(f"{server.url}/v1/occupancy/points", method="OPTIONS", headers={
-        "Origin": "http://evil.example", "Access-Control-Request-Method": "POST"})
+    preflight = urllib.request.Request(
+        f"{server.url}/v1/occupancy/points",
+        method="OPTIONS",
+        headers={"Origin": "http://evil.example", "Access-Control-Request-Method": "POST"},
+    )
     try:
         urllib.request.urlopen(preflight, timeout=10)
         raise AssertionError("a CORS preflight was answered")

@@ -1,4 +1,5 @@
 """docker-compose.yml and the Dockerfile: the file validates, and every command is a real `gmmap` command line."""
+
 from __future__ import annotations
 
 import shutil
@@ -37,8 +38,9 @@ def test_compose_file_validates():
     command = compose_command()
     if command is None:
         pytest.skip("no compose parser: install Debian's docker-compose (make test does so as root)")
-    result = subprocess.run([*command, "-f", str(COMPOSE), "config", "-q"], capture_output=True, text=True,
-                            cwd=ROOT, timeout=60)
+    result = subprocess.run(
+        [*command, "-f", str(COMPOSE), "config", "-q"], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
     assert result.returncode == 0, result.stderr
 
 
@@ -71,12 +73,16 @@ def test_every_command_parses_as_gmmap(compose):
             sources.append(sim)
     assert len(set(robots)) == 3
     assert sorted(s.index for s in sources) == [0, 1, 2] and {(s.world, s.robots, s.seed) for s in sources} == {
-        ("office", 3, 0)}
+        ("office", 3, 0)
+    }
 
 
 def test_dockerfile_installs_the_package_on_python_311_slim():
-    lines = [line.strip() for line in (ROOT / "Dockerfile").read_text().splitlines()
-             if line.strip() and not line.startswith("#")]
+    lines = [
+        line.strip()
+        for line in (ROOT / "Dockerfile").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
     assert lines[0] == "FROM python:3.11-slim"
     assert any(line.startswith("RUN pip install") and " ." in line for line in lines)
     assert 'ENTRYPOINT ["gmmap"]' in lines

@@ -1,18 +1,33 @@
 """Fuzzing the Zenoh ingest of a real server process: bench/fuzz_ingest.py with 2,000 messages
 (the benchmark run sends 10^5), and its report checked here field by field."""
+
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+
 from support.paths import ROOT
 
 
-
 def test_fuzzed_ingest_keeps_the_server_up_counts_every_rejection_and_stores_nothing_invalid():
-    run = subprocess.run([sys.executable, str(ROOT / "bench" / "fuzz_ingest.py"), "--messages", "2000",
-                          "--seed", "11", "--max-seconds", "60", "--json"],
-                         capture_output=True, text=True, timeout=180, cwd=ROOT)
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "fuzz_ingest.py"),
+            "--messages",
+            "2000",
+            "--seed",
+            "11",
+            "--max-seconds",
+            "60",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=ROOT,
+    )
     report = json.loads(run.stdout.strip().splitlines()[-1])
     assert report["sent"] == 2000
     assert report["alive"] and report["exit_code"] == 0, report

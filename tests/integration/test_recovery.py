@@ -1,16 +1,16 @@
 """Restarts in the middle of a run, one trial each (bench/crash_trials.py runs many): the Zenoh
 router between agents and server is killed and restarted; an agent is killed and restarted on
 its outbox. Nothing acknowledged may be lost, and everything must arrive in the end."""
+
 from __future__ import annotations
 
 import signal
 import time
 
-from support.net import free_port, wait_for
-from support.processes import HALVES, acked_nodes, stored_nodes, written_nodes
-
 from protocol import parse_key, scan_wildcard
 from services.map_server.check import check_store
+from support.net import free_port, wait_for
+from support.processes import HALVES, acked_nodes, stored_nodes, written_nodes
 
 RATE = "150"  # scans per second per agent: the 455 scans of a half take about 3 s
 
@@ -31,8 +31,12 @@ def test_router_killed_and_restarted_mid_run_loses_nothing(procs, data_dir, tmp_
     agents = [procs.agent(r, rport, data_dir, "--rate", RATE, "--resend", "0.5", "--timeout", "60") for r in HALVES]
     # Both under way: an agent that has stored nothing may not have opened its outbox yet (under
     # load one can start seconds after the other), and reading it would fail on a file not there.
-    wait_for(lambda: min(len(stored_nodes(data, r)) for r in HALVES) >= 50, 60, "50 stored scans of each robot",
-             interval=0.02)
+    wait_for(
+        lambda: min(len(stored_nodes(data, r)) for r in HALVES) >= 50,
+        60,
+        "50 stored scans of each robot",
+        interval=0.02,
+    )
 
     router.send_signal(signal.SIGKILL)
     router.wait()
@@ -70,8 +74,9 @@ def test_agent_killed_and_restarted_resumes_from_its_outbox(procs, session_to, d
     assert acked and acked <= stored_nodes(data, "a")
 
     published = []  # (fleet, robot, "scan", node) of every scan published from here on, resends too
-    spy = session_to(zport).declare_subscriber(scan_wildcard("default"),
-                                               lambda sample: published.append(parse_key(str(sample.key_expr))))
+    spy = session_to(zport).declare_subscriber(
+        scan_wildcard("default"), lambda sample: published.append(parse_key(str(sample.key_expr)))
+    )
     agents["a"] = procs.agent("a", zport, data_dir, *options)
     for agent in agents.values():
         assert procs.finish(agent, 90) == 0, procs.log(agent)

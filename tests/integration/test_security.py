@@ -1,6 +1,7 @@
 """Who may write what: Zenoh user/password authentication and access control, TLS with client
 certificates, and a per-robot storage quota. Real server and agent processes on 127.0.0.1,
 with the example configuration of docs/security/ exactly as shipped."""
+
 from __future__ import annotations
 
 import shutil
@@ -36,10 +37,25 @@ def security(tmp_path) -> Path:
 
 
 def agent(procs, robot: str, endpoint: str, data_dir: Path, config: str, *extra: str):  # noqa: F811
-    return procs.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", endpoint,
-                       "--zenoh-config", config, "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
-                       "--scans", SLICES[robot], "--outbox", str(procs.workdir / f"outbox-{robot}.db"),
-                       "--timeout", "30", *extra)
+    return procs.start(
+        f"agent-{robot}",
+        "agent",
+        "--robot",
+        robot,
+        "--zenoh-connect",
+        endpoint,
+        "--zenoh-config",
+        config,
+        "--source",
+        f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
+        "--scans",
+        SLICES[robot],
+        "--outbox",
+        str(procs.workdir / f"outbox-{robot}.db"),
+        "--timeout",
+        "30",
+        *extra,
+    )
 
 
 def session(endpoint: str, config: Path, patient: bool = True) -> zenoh.Session:
@@ -63,8 +79,11 @@ def impersonate(endpoint: str, config: Path, data: Path) -> list:
     Returns what arrived on b's Ack key."""
     heard = []
     update = PoseGraphUpdate("default", "b", 99, ((455, Pose.from_xytheta(50.0, 50.0, 0.0)),))
-    puts = [(scan_key("default", "b", 5), scan_of("b", 5)), (poses_key("default", "b"), encode(update)),
-            (scan_key("default", "a", 999), scan_of("a", 999))]
+    puts = [
+        (scan_key("default", "b", 5), scan_of("b", 5)),
+        (poses_key("default", "b"), encode(update)),
+        (scan_key("default", "a", 999), scan_of("a", 999)),
+    ]
     rogue = session(endpoint, config)
     try:
         spy = rogue.declare_subscriber("gmmap/default/b/ack", lambda s: heard.append(s.payload.to_bytes()))
@@ -82,18 +101,34 @@ def impersonate(endpoint: str, config: Path, data: Path) -> list:
 
 
 @pytest.mark.parametrize("topology", ["direct", "router"])
-def test_with_access_control_robot_a_cannot_write_under_robot_b(procs, security, data_dir, tmp_path,  # noqa: F811
-                                                                 topology):
+def test_with_access_control_robot_a_cannot_write_under_robot_b(
+    procs,
+    security,
+    data_dir,
+    tmp_path,  # noqa: F811
+    topology,
+):
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     endpoint = f"tcp/127.0.0.1:{zport}"
     if topology == "direct":  # robots connect to the server, which checks them
-        procs.server("server", data, zport, hport, "--zenoh-listen", endpoint,
-                     "--zenoh-config", "docs/security/server.json5")
+        procs.server(
+            "server", data, zport, hport, "--zenoh-listen", endpoint, "--zenoh-config", "docs/security/server.json5"
+        )
     else:  # robots and server connect to a router, which checks them all
-        procs.ready(procs.start("router", "router", "--listen", endpoint, "--zenoh-config", "docs/security/router.json5"),
-                    "gmmap router ready")
-        procs.server("server", data, 0, hport, "--zenoh-connect", endpoint,
-                     "--zenoh-config", "docs/security/server-via-router.json5")
+        procs.ready(
+            procs.start("router", "router", "--listen", endpoint, "--zenoh-config", "docs/security/router.json5"),
+            "gmmap router ready",
+        )
+        procs.server(
+            "server",
+            data,
+            0,
+            hport,
+            "--zenoh-connect",
+            endpoint,
+            "--zenoh-config",
+            "docs/security/server-via-router.json5",
+        )
     agents = [agent(procs, r, endpoint, data_dir, f"docs/security/robot-{r}.json5") for r in SLICES]
     heard = impersonate(endpoint, security / "robot-a.json5", data)
     for a in agents:
@@ -128,8 +163,9 @@ def test_mutual_tls_with_access_control_by_certificate_name(procs, security, dat
     subprocess.run(["sh", "docs/security/make-certs.sh"], cwd=tmp_path, check=True, capture_output=True)
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     endpoint = f"tls/127.0.0.1:{zport}"
-    procs.server("server", data, zport, hport, "--zenoh-listen", endpoint,
-                 "--zenoh-config", "docs/security/server-mtls.json5")
+    procs.server(
+        "server", data, zport, hport, "--zenoh-listen", endpoint, "--zenoh-config", "docs/security/server-mtls.json5"
+    )
     robot_a = agent(procs, "a", endpoint, data_dir, "docs/security/robot-a-mtls.json5")
 
     # The robot configs name their certificates relative to the repository: run from tmp_path.
@@ -141,12 +177,16 @@ def test_mutual_tls_with_access_control_by_certificate_name(procs, security, dat
     assert stored_nodes(data, "b") == set() and heard == []
 
     no_cert = security / "no-cert.json5"
-    no_cert.write_text('{ transport: { link: { tls: { root_ca_certificate: "%s" } } } }' % (security / "certs" / "ca.pem"))
+    no_cert.write_text(
+        '{ transport: { link: { tls: { root_ca_certificate: "%s" } } } }' % (security / "certs" / "ca.pem")
+    )
     plain = security / "plain.json5"
     plain.write_text("{}")
-    for config, ep in ((no_cert, endpoint),  # trusts the fleet's CA, but shows no certificate of its own
-                       (plain, endpoint),  # the default trust store does not know the fleet's CA
-                       (plain, f"tcp/127.0.0.1:{zport}")):  # not TLS at all
+    for config, ep in (
+        (no_cert, endpoint),  # trusts the fleet's CA, but shows no certificate of its own
+        (plain, endpoint),  # the default trust store does not know the fleet's CA
+        (plain, f"tcp/127.0.0.1:{zport}"),
+    ):  # not TLS at all
         with pytest.raises(zenoh.ZError):
             session(ep, config, patient=False).close()
 
@@ -154,10 +194,25 @@ def test_mutual_tls_with_access_control_by_certificate_name(procs, security, dat
 def test_a_robot_over_its_quota_is_told_why_and_stops(procs, data_dir, tmp_path):  # noqa: F811
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     quota = 0.01  # MiB: room for about 18 Intel scans of 0.57 kB
-    procs.server("server", data, zport, hport, "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--robot-quota-mb", str(quota))
-    robot = procs.start("agent-a", "agent", "--robot", "a", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
-                        "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}", "--scans", "0:100",
-                        "--outbox", str(tmp_path / "outbox-a.db"), "--timeout", "30")
+    procs.server(
+        "server", data, zport, hport, "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--robot-quota-mb", str(quota)
+    )
+    robot = procs.start(
+        "agent-a",
+        "agent",
+        "--robot",
+        "a",
+        "--zenoh-connect",
+        f"tcp/127.0.0.1:{zport}",
+        "--source",
+        f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
+        "--scans",
+        "0:100",
+        "--outbox",
+        str(tmp_path / "outbox-a.db"),
+        "--timeout",
+        "30",
+    )
     assert procs.finish(robot, 60) == 3, procs.log(robot)  # told (3), not left resending until its timeout (1)
     summary = procs.log(robot).strip().splitlines()[-1]
     assert "refused" in summary and "quota" in summary and "--robot-quota-mb" in summary, summary

@@ -1,5 +1,6 @@
 """The map server and robot agents as processes: real Zenoh on 127.0.0.1 (scouting off), real
 uvicorn, SQLite in tmp_path, the real Intel logs. Every subprocess is killed in a finally."""
+
 from __future__ import annotations
 
 import io
@@ -28,8 +29,9 @@ def intel(data_dir):
     """Matched (raw, corrected) Intel scans, the 10 cm grid over them and the truth grid."""
     from services.datasets import match_by_timestamp, read_scans
 
-    pairs = match_by_timestamp(read_scans(data_dir / "radish" / "intel.clf.bz2"),
-                               read_scans(data_dir / "carmen" / "intel-corrected.log.gz"))
+    pairs = match_by_timestamp(
+        read_scans(data_dir / "radish" / "intel.clf.bz2"), read_scans(data_dir / "carmen" / "intel-corrected.log.gz")
+    )
     assert len(pairs) == 910
     corrected = [fixed for _, fixed in pairs]
     lo, hi = data_extent(corrected, 10.0)
@@ -64,8 +66,10 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
     # Phase 2: the same robots again, now with their back end: every scan is a resend (stored
     # once), then the corrected poses every 100 scans and at the end. New outboxes: with its old
     # one, an agent would resume and skip the scans already acknowledged.
-    agents = [procs.agent(r, zport, data_dir, "--timeout", "60", "--outbox", str(tmp_path / f"outbox-{r}-2.db"))
-              for r in HALVES]
+    agents = [
+        procs.agent(r, zport, data_dir, "--timeout", "60", "--outbox", str(tmp_path / f"outbox-{r}-2.db"))
+        for r in HALVES
+    ]
     for a in agents:
         assert procs.finish(a, 90) == 0, procs.log(a)
     raw_reply, corrected_map = served_map(session, grid)
@@ -87,8 +91,8 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
     # FleetMap's seeds, in its (robot, node) order.
     models = {key: decode(raw, expect=ScanMessage).model for key, raw in stored.items()}
     offline_h, offline_m = reconstruct(
-        grid, [(models[(r, n)], pairs[n][1].pose, scan_seed(r, n)) for r, n in sorted(models)],
-        samples_per_cell=4.0)
+        grid, [(models[(r, n)], pairs[n][1].pose, scan_seed(r, n)) for r, n in sorted(models)], samples_per_cell=4.0
+    )
     offline = map_estimate(offline_h, offline_m, 0.2)
     assert np.array_equal(corrected_map, offline)
 
@@ -112,11 +116,14 @@ def test_kill_9_during_ingest_loses_no_acknowledged_scan(procs, session_to, inte
     _, grid, _ = intel
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     server = procs.server("server-1", data, zport, hport)
-    agents = [procs.agent(r, zport, data_dir, "--rate", "150", "--resend", "0.5", "--timeout", "60")
-              for r in HALVES]
+    agents = [procs.agent(r, zport, data_dir, "--rate", "150", "--resend", "0.5", "--timeout", "60") for r in HALVES]
     # Of each robot (one may start seconds after the other, its outbox not yet there to read).
-    wait_for(lambda: min(len(stored_nodes(data, r)) for r in HALVES) >= 100, 60, "100 stored scans of each robot",
-             interval=0.02)
+    wait_for(
+        lambda: min(len(stored_nodes(data, r)) for r in HALVES) >= 100,
+        60,
+        "100 stored scans of each robot",
+        interval=0.02,
+    )
     server.send_signal(signal.SIGKILL)
     server.wait()
     for robot, agent in zip(HALVES, agents):
@@ -144,8 +151,11 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     procs.server("server", data, zport, hport)
     session = session_to(zport)
-    wait_for(lambda: session.declare_publisher(scan_key("default", "fuzz", 0)).matching_status.matching, 10,
-             "the server's subscribers")
+    wait_for(
+        lambda: session.declare_publisher(scan_key("default", "fuzz", 0)).matching_status.matching,
+        10,
+        "the server's subscribers",
+    )
     rng = np.random.default_rng(5)
     garbage = [rng.bytes(int(n)) for n in rng.integers(0, 400, 100)]
     for i, payload in enumerate(garbage):
@@ -161,14 +171,25 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     acks = []
     sub = session.declare_subscriber(ack_key("default", "ok"), lambda s: acks.append(decode(s.payload.to_bytes())))
     try:
-        wait_for(lambda: (session.put(scan_key("default", "ok", 7), encode(good)), acks)[1], 10, "the Ack of a good scan",
-                 interval=0.2)
+        wait_for(
+            lambda: (session.put(scan_key("default", "ok", 7), encode(good)), acks)[1],
+            10,
+            "the Ack of a good scan",
+            interval=0.2,
+        )
     finally:
         sub.undeclare()
     assert acks[0].ids == (7,) and acks[0].kind == "scan"
 
-    text = wait_for(lambda: (t := http_get(hport, "/metrics").decode())
-                    and metric(t, "gmmap_messages_rejected_total") >= expected_rejections and t, 10, "rejections")
+    text = wait_for(
+        lambda: (
+            (t := http_get(hport, "/metrics").decode())
+            and metric(t, "gmmap_messages_rejected_total") >= expected_rejections
+            and t
+        ),
+        10,
+        "rejections",
+    )
     assert metric(text, "gmmap_messages_rejected_total") == expected_rejections
     assert metric(text, "gmmap_messages_rejected_total", kind="scan", reason="key.robot") == 1
     assert metric(text, "gmmap_messages_rejected_total", kind="scan", reason="type") == 1
@@ -189,9 +210,22 @@ def test_agent_and_server_meet_through_a_router(procs, data_dir, tmp_path):
     """Agent (client) -> `gmmap router` <- server (peer), the agent started first."""
     rport, data = free_port(), tmp_path / "data"
     router = procs.ready(procs.start("router", "router", "--listen", f"tcp/127.0.0.1:{rport}"), "gmmap router ready")
-    agent = procs.start("agent", "agent", "--robot", "solo", "--zenoh-connect", f"tcp/127.0.0.1:{rport}",
-                        "--source", f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}", "--scans", "0:50",
-                        "--outbox", str(tmp_path / "outbox.db"), "--timeout", "30")
+    agent = procs.start(
+        "agent",
+        "agent",
+        "--robot",
+        "solo",
+        "--zenoh-connect",
+        f"tcp/127.0.0.1:{rport}",
+        "--source",
+        f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
+        "--scans",
+        "0:50",
+        "--outbox",
+        str(tmp_path / "outbox.db"),
+        "--timeout",
+        "30",
+    )
     procs.server("server", data, 0, free_port(), "--zenoh-connect", f"tcp/127.0.0.1:{rport}")
     assert procs.finish(agent, 60) == 0, procs.log(agent)
     assert stored_nodes(data, "solo") == set(range(50))

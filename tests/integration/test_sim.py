@@ -1,5 +1,6 @@
 """Simulated fleets: the `sim:` agent source, the measuring pieces of `gmmap sim`, a short run of it
 over real Zenoh with its report, and `gmmap demo`."""
+
 from __future__ import annotations
 
 import json
@@ -21,22 +22,38 @@ from services.sim.fleet import SimSource, SimulatedFleet
 from services.sim.processes import free_port
 from services.sim.record import slabs
 from services.sim.relay import CountingRelay
-from services.sim.worlds import WORLDS
 from support.paths import ROOT
 
 GMMAP = [sys.executable, "-m", "services.cli"]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
-REPORT_KEYS = {"robots", "duration_s", "bytes_on_wire", "raw_scan_bytes", "grid_delta_bytes", "components", "auroc",
-               "auroc_before_correction", "scans_published", "scans_stored", "ingest_lag_p99_s", "tile_latency_p99_s"}
+REPORT_KEYS = {
+    "robots",
+    "duration_s",
+    "bytes_on_wire",
+    "raw_scan_bytes",
+    "grid_delta_bytes",
+    "components",
+    "auroc",
+    "auroc_before_correction",
+    "scans_published",
+    "scans_stored",
+    "ingest_lag_p99_s",
+    "tile_latency_p99_s",
+}
 
 
 # --- the sim source ------------------------------------------------------------------------------
 
+
 def test_sim_source_parses_and_names_what_is_wrong():
     assert SimSource.parse("sim:office:1:3") == SimSource("office", 1, 3, 0)
     assert str(SimSource.parse("sim:mine:0:1:7")) == "sim:mine:0:1:7"
-    for bad, says in [("sim:office:3:3", "INDEX"), ("sim:moon:0:1", "world"), ("sim:office:a:3", "sim:WORLD"),
-                      ("sim:office:0", "sim:WORLD")]:
+    for bad, says in [
+        ("sim:office:3:3", "INDEX"),
+        ("sim:moon:0:1", "world"),
+        ("sim:office:a:3", "sim:WORLD"),
+        ("sim:office:0", "sim:WORLD"),
+    ]:
         with pytest.raises(ValueError, match=says):
             SimSource.parse(bad)
     with pytest.raises(ValueError, match="--scans"):
@@ -65,6 +82,7 @@ def test_sim_nodes_publish_the_robots_estimate_and_correct_to_the_truth():
 
 
 # --- measuring pieces ----------------------------------------------------------------------------
+
 
 def test_relay_counts_both_directions():
     server = socket.create_server(("127.0.0.1", 0))
@@ -112,11 +130,32 @@ def test_slabs_cover_the_grid_exactly():
 
 # --- processes -----------------------------------------------------------------------------------
 
+
 def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
     out = tmp_path / "report"
-    result = subprocess.run(GMMAP + ["sim", "--robots", "2", "--world", "office", "--duration", "6", "--rate", "5",
-                                     "--http-clients", "1", "--report", str(out)],
-                            cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        GMMAP
+        + [
+            "sim",
+            "--robots",
+            "2",
+            "--world",
+            "office",
+            "--duration",
+            "6",
+            "--rate",
+            "5",
+            "--http-clients",
+            "1",
+            "--report",
+            str(out),
+        ],
+        cwd=tmp_path,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
     assert REPORT_KEYS <= report.keys()
@@ -139,8 +178,14 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
 
 def test_demo_serves_the_viewer_and_stops_after_its_duration(tmp_path):
     port = free_port()
-    demo = subprocess.Popen(GMMAP + ["demo", "--duration", "3", "--http", f"127.0.0.1:{port}"], cwd=tmp_path, env=ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    demo = subprocess.Popen(
+        GMMAP + ["demo", "--duration", "3", "--http", f"127.0.0.1:{port}"],
+        cwd=tmp_path,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     try:
         assert demo.stdout.readline().startswith(f"gmmap demo: the viewer is at http://127.0.0.1:{port}/")
         deadline, nodes = time.monotonic() + 30, 0

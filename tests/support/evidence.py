@@ -1,5 +1,6 @@
 """The references the analytic evidence (gmm_core.analytic) is held to, shared by its tests:
 Monte-Carlo counting of one cell as the ray tracer counts, and two small 2D scans of a corner."""
+
 import numpy as np
 
 from gmm_core import Mixture, Pose, ScanModel
@@ -25,8 +26,12 @@ def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False):
 
 def two_scans_2d():
     """Two small scans of a corner, seen from two poses; every mixture has a free part too."""
-    wall = Mixture(np.array([0.5, 0.5]), np.array([[2.0, -0.3], [2.0, 0.4]]),
-                   np.array([np.diag([1e-4, 0.04]), np.diag([2e-4, 0.02])]), 40)
+    wall = Mixture(
+        np.array([0.5, 0.5]),
+        np.array([[2.0, -0.3], [2.0, 0.4]]),
+        np.array([np.diag([1e-4, 0.04]), np.diag([2e-4, 0.02])]),
+        40,
+    )
     free = Mixture(np.ones(1), np.array([[0.5, 2.5]]), np.diag([0.05, 1e-4])[None], 10)
     scan = ScanModel(wall, free, np.zeros(2), 3.0)
     return [(scan, Pose.from_xytheta(0.0, 0.0, 0.0)), (scan, Pose.from_xytheta(0.3, -0.5, 0.2))]

@@ -3,6 +3,7 @@ bench/fuzz_ingest.py.
 
 Nothing here runs in a service; it makes inputs that a weak radio or a hostile peer could send.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,8 +44,12 @@ def scan_like_mixture(rng: np.random.Generator, dim: int, count: int, extent: fl
 
 def scan_message(rng: np.random.Generator, dim: int, occupied: int, free: int, node: int = 7) -> ScanMessage:
     max_range = 30.0 if dim == 2 else 80.0
-    model = ScanModel(scan_like_mixture(rng, dim, occupied), scan_like_mixture(rng, dim, free, max_range),
-                      rng.normal(scale=0.1, size=dim), max_range)
+    model = ScanModel(
+        scan_like_mixture(rng, dim, occupied),
+        scan_like_mixture(rng, dim, free, max_range),
+        rng.normal(scale=0.1, size=dim),
+        max_range,
+    )
     if dim == 2:
         pose = Pose.from_xytheta(*rng.uniform(-20, 20, 2), rng.uniform(-np.pi, np.pi))
     else:
@@ -68,8 +73,36 @@ def seed_messages(rng: np.random.Generator) -> list[bytes]:
     return messages
 
 
-_ODD_VALUES = [None, True, False, -1, 0, 1, 2, 3, 4, 2**63, 2**64 - 1, -2**63, 0.5, -1.0, math.nan, math.inf,
-               "", "q", "f32", "scan", "a b", "x" * 65, b"", b"\x00" * 7, [], [1, 2], {}, {"v": 1}]
+_ODD_VALUES = [
+    None,
+    True,
+    False,
+    -1,
+    0,
+    1,
+    2,
+    3,
+    4,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    0.5,
+    -1.0,
+    math.nan,
+    math.inf,
+    "",
+    "q",
+    "f32",
+    "scan",
+    "a b",
+    "x" * 65,
+    b"",
+    b"\x00" * 7,
+    [],
+    [1, 2],
+    {},
+    {"v": 1},
+]
 
 
 def _leaves(value, path=()):
@@ -143,20 +176,23 @@ def mutate(rng: np.random.Generator, data: bytes) -> tuple[str, bytes]:
         for _ in range(int(rng.integers(1, 9))):
             buf[int(rng.integers(len(buf)))] ^= 1 << int(rng.integers(8))
     elif kind == "truncate":
-        del buf[int(rng.integers(len(buf))):]
+        del buf[int(rng.integers(len(buf))) :]
     elif kind == "insert":
         at = int(rng.integers(len(buf) + 1))
         buf[at:at] = rng.bytes(int(rng.integers(1, 17)))
     elif kind == "delete":
         at = int(rng.integers(len(buf)))
-        del buf[at:at + int(rng.integers(1, 17))]
+        del buf[at : at + int(rng.integers(1, 17))]
     elif kind == "duplicate":
         at = int(rng.integers(len(buf)))
-        buf[at:at] = buf[at:at + int(rng.integers(1, 33))]
+        buf[at:at] = buf[at : at + int(rng.integers(1, 33))]
     elif kind == "overwrite":  # msgpack type markers, to reach the odd corners of the format
         for _ in range(int(rng.integers(1, 4))):
-            buf[int(rng.integers(len(buf)))] = int(rng.choice([0xC0, 0xC1, 0xC2, 0xC4, 0xC5, 0xCA, 0xCB, 0xCF,
-                                                               0xD3, 0xD4, 0xD9, 0xDC, 0xDE, 0x80, 0x90, 0xA0]))
+            buf[int(rng.integers(len(buf)))] = int(
+                rng.choice(
+                    [0xC0, 0xC1, 0xC2, 0xC4, 0xC5, 0xCA, 0xCB, 0xCF, 0xD3, 0xD4, 0xD9, 0xDC, 0xDE, 0x80, 0x90, 0xA0]
+                )
+            )
     elif kind == "random":
         buf = bytearray(rng.bytes(int(rng.integers(0, 300))))
     else:

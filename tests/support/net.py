@@ -1,4 +1,5 @@
 """Loopback ports, polling, and reading a server's HTTP answers."""
+
 from __future__ import annotations
 
 import json

@@ -1,6 +1,7 @@
 """The paper's formulas as printed, and Python entry points to kernels that only tests and benches
 call: Eq. 5 on angles (the product's kernel takes their sines), the geometry that feeds it, and the
 standard normal mass of one polygon, exact or by Eq. 6-9."""
+
 from __future__ import annotations
 
 import math
@@ -60,4 +61,3 @@ def polygon_mass(vertices, *, approximate: bool = False) -> float:
     xs, ys = v[:, 0].copy(), v[:, 1].copy()
     make_ccw(xs, ys, len(v))
     return float((polygon_mass_eq9 if approximate else polygon_mass_exact)(xs, ys, len(v)))
-

@@ -1,6 +1,7 @@
 """`gmmap` subprocesses of one test (server, agents, router) on the product's harness
 (services.sim.processes), and readers of the SQLite files they leave (the server's store, an
 agent's outbox)."""
+
 from __future__ import annotations
 
 import sqlite3
@@ -40,10 +41,23 @@ class TestProcesses(Processes):
 
     def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
         """Robot a or b replaying its half of the Intel log (raw scans, corrected poses) to `zport`."""
-        return self.start(f"agent-{robot}", "agent", "--robot", robot, "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
-                          "--source", f"carmen:{data_dir / 'radish' / 'intel.clf.bz2'}",
-                          "--corrections", str(data_dir / "carmen" / "intel-corrected.log.gz"),
-                          "--scans", HALVES[robot], "--outbox", str(self.workdir / f"outbox-{robot}.db"), *extra)
+        return self.start(
+            f"agent-{robot}",
+            "agent",
+            "--robot",
+            robot,
+            "--zenoh-connect",
+            f"tcp/127.0.0.1:{zport}",
+            "--source",
+            f"carmen:{data_dir / 'radish' / 'intel.clf.bz2'}",
+            "--corrections",
+            str(data_dir / "carmen" / "intel-corrected.log.gz"),
+            "--scans",
+            HALVES[robot],
+            "--outbox",
+            str(self.workdir / f"outbox-{robot}.db"),
+            *extra,
+        )
 
     def finish(self, proc: subprocess.Popen, timeout: float) -> int:
         """The child's exit code; an AssertionError with its log if it still runs after `timeout` s."""

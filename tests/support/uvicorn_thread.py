@@ -1,4 +1,5 @@
 """A real uvicorn server for an app, in a background thread of the test process."""
+
 from __future__ import annotations
 
 import socket

@@ -1,12 +1,12 @@
 """The numba EM against scikit-learn and its E-step against the dense one, and its behaviour on
 degenerate point sets."""
+
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 from sklearn.mixture import GaussianMixture
 
-from gmm_core import FitConfig, fit_scan
-from gmm_core import em
+from gmm_core import FitConfig, em, fit_scan
 from gmm_core.em import fit_mixture
 
 
@@ -47,8 +47,9 @@ def test_a_second_k_means_start_raises_the_log_likelihood(data_dir):
 
     scan = next(read_scans(data_dir / "3d" / "octomap" / "scan.dat.bz2", origin=(0, 0, 0.49)))
     points = scan.hits[np.random.default_rng(0).choice(len(scan.hits), 8000, replace=False)]
-    one, two = ([fit_mixture(points, 40, seed=s, n_init=n).log_density(points).mean() for s in range(8)]
-                for n in (1, 2))
+    one, two = (
+        [fit_mixture(points, 40, seed=s, n_init=n).log_density(points).mean() for s in range(8)] for n in (1, 2)
+    )
     assert np.mean(two) > np.mean(one) + 0.02, (np.mean(one), np.mean(two))
 
 
@@ -96,13 +97,17 @@ def test_recovers_well_separated_clusters(dim):
     assert np.allclose(mix.weights, 0.2, atol=0.01)
 
 
-@pytest.mark.parametrize("points", [
-    np.array([[1.0, 2.0]]),
-    np.array([[1.0, 2.0], [1.5, 2.5]]),
-    np.repeat([[3.0, -1.0, 2.0]], 10, axis=0),
-    np.column_stack([np.linspace(0, 5, 30), 2 * np.linspace(0, 5, 30)]),  # collinear
-    np.column_stack([np.linspace(0, 5, 30), np.zeros(30), np.zeros(30)]),
-], ids=["one", "two", "duplicates", "collinear-2d", "collinear-3d"])
+@pytest.mark.parametrize(
+    "points",
+    [
+        np.array([[1.0, 2.0]]),
+        np.array([[1.0, 2.0], [1.5, 2.5]]),
+        np.repeat([[3.0, -1.0, 2.0]], 10, axis=0),
+        np.column_stack([np.linspace(0, 5, 30), 2 * np.linspace(0, 5, 30)]),  # collinear
+        np.column_stack([np.linspace(0, 5, 30), np.zeros(30), np.zeros(30)]),
+    ],
+    ids=["one", "two", "duplicates", "collinear-2d", "collinear-3d"],
+)
 def test_degenerate_points_give_positive_definite_covariances(points):
     mix = fit_mixture(points, max(1, len(points) // 3))
     assert mix.n_components >= 1

@@ -1,4 +1,5 @@
 """Mixtures, poses and Eq. 2 against plain references."""
+
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
@@ -24,8 +25,7 @@ def test_log_density_matches_scipy(dim):
     rng = np.random.default_rng(0)
     mix = random_mixture(rng, 4, dim)
     x = rng.uniform(-6, 6, (50, dim))
-    ref = np.log(sum(w * multivariate_normal(m, c).pdf(x)
-                     for w, m, c in zip(mix.weights, mix.means, mix.covariances)))
+    ref = np.log(sum(w * multivariate_normal(m, c).pdf(x) for w, m, c in zip(mix.weights, mix.means, mix.covariances)))
     assert np.allclose(mix.log_density(x), ref)
 
 

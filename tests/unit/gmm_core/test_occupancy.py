@@ -1,4 +1,5 @@
 """Eq. 11 and Eq. 12 in closed form; AUROC against scikit-learn."""
+
 import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score

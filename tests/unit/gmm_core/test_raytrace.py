@@ -1,9 +1,9 @@
 """The Amanatides-Woo kernel against a brute-force twin: every cell a segment crosses."""
+
 import numpy as np
 import pytest
 
-from gmm_core import Grid
-from gmm_core import raytrace
+from gmm_core import Grid, raytrace
 from gmm_core.raytrace import trace_rays
 
 
@@ -20,7 +20,7 @@ def brute_force(grid, origins, ray_origin, ends, weights, is_hit):
             ta, tb = (lo_c - o) / delta, (hi_c - o) / delta
         t0 = np.max(np.where(delta != 0, np.minimum(ta, tb), -np.inf), axis=1)
         t1 = np.min(np.where(delta != 0, np.maximum(ta, tb), np.inf), axis=1)
-        crossed = (np.maximum(t0, 0) < np.minimum(t1, 1))
+        crossed = np.maximum(t0, 0) < np.minimum(t1, 1)
         end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
         if is_hit[r]:
             hits[end_cell] += weights[r]
@@ -81,7 +81,7 @@ def test_chunks_match_brute_force_and_each_other(dim, big):
     """Chunked tracing (one per numba thread) on small grids and on grids big enough that rays are
     sorted by end block and chunks fill slab buffers: brute-force counts for any chunk count."""
     rng = np.random.default_rng(10 + dim)
-    side = (raytrace.SORT_MIN_CELLS ** (1 / dim) + 1 if big else 9)
+    side = raytrace.SORT_MIN_CELLS ** (1 / dim) + 1 if big else 9
     grid = Grid(np.full(dim, -2.0), 4.0 / side, (int(side),) * dim)
     assert (grid.n_cells >= raytrace.SORT_MIN_CELLS) == big
     origins, ray_origin, ends, weights, is_hit = random_rays(rng, dim, 4, 300, 3, 3)
@@ -101,7 +101,15 @@ def chunked(grid, origins, ray_origin, ends, weights, is_hit, n_chunks):
     d = grid.dim
     z = grid.resolution / 2
     dims = np.array(list(grid.shape) + [1] * (3 - d))
-    hits, misses = raytrace._counts(raytrace._as_3d(origins, d, z), ray_origin, raytrace._as_3d(ends, d, z),
-                                    weights, is_hit, raytrace._as_3d(grid.origin, d, 0.0)[0],
-                                    grid.resolution, dims, n_chunks)
+    hits, misses = raytrace._counts(
+        raytrace._as_3d(origins, d, z),
+        ray_origin,
+        raytrace._as_3d(ends, d, z),
+        weights,
+        is_hit,
+        raytrace._as_3d(grid.origin, d, 0.0)[0],
+        grid.resolution,
+        dims,
+        n_chunks,
+    )
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)

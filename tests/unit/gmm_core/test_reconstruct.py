@@ -1,4 +1,5 @@
 """Sampling and reconstruction: evidence counts, determinism, re-posing (Eq. 2)."""
+
 import numpy as np
 
 from gmm_core import FitConfig, Grid, Mixture, Pose, ScanModel, fit_scan
@@ -84,6 +85,7 @@ def test_sample_placement_kernel_matches_numpy():
         component = np.repeat(np.arange(k), counts)
         z = np.random.default_rng(1).standard_normal((counts.sum(), dim))
         chol = np.linalg.cholesky(mixture.covariances)
-        assert np.allclose(points, mixture.means[component] + np.einsum("nij,nj->ni", chol[component], z),
-                           rtol=0, atol=1e-12)
+        assert np.allclose(
+            points, mixture.means[component] + np.einsum("nij,nj->ni", chol[component], z), rtol=0, atol=1e-12
+        )
         assert np.allclose(weights, (50 / k / np.maximum(counts, 1))[component], rtol=1e-6)

@@ -1,4 +1,5 @@
 """protocol/: round trips, bounds of the quantisation, validation at decode, keys, sizes, fuzz."""
+
 from __future__ import annotations
 
 import math
@@ -12,8 +13,23 @@ from hypothesis import strategies as st
 from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
-from protocol import (Ack, MapQuery, MapReply, PoseGraphUpdate, ProtocolError, ScanMessage, ack_key, decode,
-                      encode, occupancy_key, parse_key, poses_key, poses_wildcard, scan_key, scan_wildcard)
+from protocol import (
+    Ack,
+    MapQuery,
+    MapReply,
+    PoseGraphUpdate,
+    ProtocolError,
+    ScanMessage,
+    ack_key,
+    decode,
+    encode,
+    occupancy_key,
+    parse_key,
+    poses_key,
+    poses_wildcard,
+    scan_key,
+    scan_wildcard,
+)
 from protocol import quantize as qz
 from protocol.codec import UNCHECKED
 from support.fuzz import mutate, random_rotations, scan_like_mixture, scan_message, seed_messages
@@ -85,7 +101,12 @@ def test_f32_round_trip_is_exact_to_float32(dim, data):
     occupied, free = data.draw(mixtures(dim, stds=(1e-3, 1.0))), data.draw(mixtures(dim, 5, stds=(1e-3, 1.0)))
     message = scan_of(occupied, free)
     back = decode(encode(message, "f32"))
-    assert (back.fleet, back.robot, back.node, back.stamp) == (message.fleet, message.robot, message.node, message.stamp)
+    assert (back.fleet, back.robot, back.node, back.stamp) == (
+        message.fleet,
+        message.robot,
+        message.node,
+        message.stamp,
+    )
     for sent, got in ((occupied, back.model.occupied), (free, back.model.free)):
         assert got.support == sent.support
         np.testing.assert_array_equal(got.means, sent.means.astype(np.float32))
@@ -262,15 +283,45 @@ INVALID_SCANS = [
     ("q stream type", "q", lambda r: set_path(r, ("O", "c"), "text"), "occupied.components"),
     ("q bounds length", "q", lambda r: set_path(r, ("O", "b"), r["O"]["b"][:8]), "occupied.bounds"),
     ("q bounds missing", "q", lambda r: without(r, "O", "b"), "occupied.bounds"),
-    ("q bounds nan", "q", lambda r: set_path(r, ("O", "b"), np.array([np.nan, 0, 1, 1], "<f4").tobytes()), "occupied.bounds"),
-    ("q bounds order", "q", lambda r: set_path(r, ("O", "b"), np.array([2, 0, 1, 1], "<f4").tobytes()), "occupied.bounds"),
+    (
+        "q bounds nan",
+        "q",
+        lambda r: set_path(r, ("O", "b"), np.array([np.nan, 0, 1, 1], "<f4").tobytes()),
+        "occupied.bounds",
+    ),
+    (
+        "q bounds order",
+        "q",
+        lambda r: set_path(r, ("O", "b"), np.array([2, 0, 1, 1], "<f4").tobytes()),
+        "occupied.bounds",
+    ),
     ("f32 length", "f32", lambda r: set_path(r, ("O", "c"), r["O"]["c"][:-4]), "occupied.components"),
     ("f32 nan", "f32", lambda r: with_table(r, lambda t: t.__setitem__((0, 0), np.nan)), "occupied.components"),
     ("f32 inf", "f32", lambda r: with_table(r, lambda t: t.__setitem__((1, 3), np.inf)), "occupied.components"),
-    ("f32 not PD", "f32", lambda r: with_table(r, lambda t: t.__setitem__((2, slice(2, 5)), [1, 2, 1])), "occupied.covariances"),
-    ("f32 zero cov", "f32", lambda r: with_table(r, lambda t: t.__setitem__((2, slice(2, 5)), 0)), "occupied.covariances"),
-    ("f32 negative weight", "f32", lambda r: with_table(r, lambda t: t.__setitem__((0, 5), -t[0, 5])), "occupied.weights"),
-    ("f32 weights sum", "f32", lambda r: with_table(r, lambda t: t.__setitem__((slice(None), 5), t[:, 5] * 1.01)), "occupied.weights"),
+    (
+        "f32 not PD",
+        "f32",
+        lambda r: with_table(r, lambda t: t.__setitem__((2, slice(2, 5)), [1, 2, 1])),
+        "occupied.covariances",
+    ),
+    (
+        "f32 zero cov",
+        "f32",
+        lambda r: with_table(r, lambda t: t.__setitem__((2, slice(2, 5)), 0)),
+        "occupied.covariances",
+    ),
+    (
+        "f32 negative weight",
+        "f32",
+        lambda r: with_table(r, lambda t: t.__setitem__((0, 5), -t[0, 5])),
+        "occupied.weights",
+    ),
+    (
+        "f32 weights sum",
+        "f32",
+        lambda r: with_table(r, lambda t: t.__setitem__((slice(None), 5), t[:, 5] * 1.01)),
+        "occupied.weights",
+    ),
 ]
 
 
@@ -313,15 +364,27 @@ def test_limits():
 
 
 INVALID_OTHERS = [
-    (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (2, Pose.identity(2)))),
-     lambda r: set_path(r, ("nodes",), np.array([4, 4], "<u8").tobytes()), "poses.nodes"),
-    (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-     lambda r: set_path(r, ("nodes",), np.array([2**63], "<u8").tobytes()), "poses.nodes"),
-    (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-     lambda r: set_path(r, ("poses",), r["poses"][:-8]), "poses.poses"),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (2, Pose.identity(2)))),
+        lambda r: set_path(r, ("nodes",), np.array([4, 4], "<u8").tobytes()),
+        "poses.nodes",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
+        lambda r: set_path(r, ("nodes",), np.array([2**63], "<u8").tobytes()),
+        "poses.nodes",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
+        lambda r: set_path(r, ("poses",), r["poses"][:-8]),
+        "poses.poses",
+    ),
     (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)), lambda r: set_path(r, ("rev",), -2), "revision"),
-    (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(3)),)),
-     lambda r: set_path(r, ("anchor",), np.array([0, 0, 0, 0, 0, 0, 0], "<f8").tobytes()), "anchor"),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(3)),)),
+        lambda r: set_path(r, ("anchor",), np.array([0, 0, 0, 0, 0, 0, 0], "<f8").tobytes()),
+        "anchor",
+    ),
     (PoseGraphUpdate("f", "r", 1, (), Pose.identity(2)), lambda r: set_path(r, ("anchor",), None), "poses"),
     (Ack("f", "r", "scan", (1,)), lambda r: set_path(r, ("kind",), "map"), "kind"),
     (Ack("f", "r", "scan", (1,)), lambda r: set_path(r, ("ids",), b"\x01\x02"), "ids"),
@@ -331,8 +394,11 @@ INVALID_OTHERS = [
     (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("robots",), "ok"), "robots"),
     (MapReply("f", [0, 0], 0.1, np.zeros((2, 2))), lambda r: set_path(r, ("shape",), [2, 3]), "probabilities"),
     (MapReply("f", [0, 0], 0.1, np.zeros((2, 2))), lambda r: set_path(r, ("shape",), [4]), "shape"),
-    (MapReply("f", [0, 0], 0.1, np.zeros((2, 2))),
-     lambda r: set_path(r, ("p",), np.array([0, 0.5, 1, 1.5], "<f4").tobytes()), "probabilities"),
+    (
+        MapReply("f", [0, 0], 0.1, np.zeros((2, 2))),
+        lambda r: set_path(r, ("p",), np.array([0, 0.5, 1, 1.5], "<f4").tobytes()),
+        "probabilities",
+    ),
 ]
 
 
@@ -350,8 +416,12 @@ def test_encode_refuses_what_decode_would_reject():
     not_pd = Mixture(good.weights, good.means, np.tile([[1.0, 2.0], [2.0, 1.0]], (4, 1, 1)), 9)
     unnormalised = Mixture(good.weights * 2, good.means, good.covariances, 9)
     thin = Mixture([1.0], [[0, 0]], [[[1.0, 1.0 - 1e-12], [1.0 - 1e-12, 1.0]]], 3)  # PD in float64 only
-    for mixture, field, encodings in ((nan_means, "occupied.means", "q f32"), (not_pd, "occupied.covariances", "q f32"),
-                                      (unnormalised, "occupied.weights", "q f32"), (thin, "occupied.covariances", "f32")):
+    for mixture, field, encodings in (
+        (nan_means, "occupied.means", "q f32"),
+        (not_pd, "occupied.covariances", "q f32"),
+        (unnormalised, "occupied.weights", "q f32"),
+        (thin, "occupied.covariances", "f32"),
+    ):
         for encoding in encodings.split():
             with pytest.raises(ProtocolError) as caught:
                 encode(scan_of(mixture, Mixture.empty(2)), encoding)
@@ -381,12 +451,22 @@ def test_keys_build_and_parse():
     assert parse_key(occupancy_key("f")) == ("f", None, "occupancy", None)
 
 
-@pytest.mark.parametrize("key, field", [
-    ("other/f/r/poses", "key"), ("gmmap/f/r/scan", "key"), ("gmmap/f/r/scan/1/2", "key"),
-    ("gmmap/f/r/scan/01", "key.node"), ("gmmap/f/r/scan/-1", "key.node"), ("gmmap/f/r/scan/*", "key.node"),
-    (f"gmmap/f/r/scan/{2**63}", "key.node"), ("gmmap/f/r/scan/１", "key.node"),
-    ("gmmap/f f/r/poses", "key.fleet"), ("gmmap/f/*/poses", "key.robot"), ("gmmap/f/r/status", "key"),
-])
+@pytest.mark.parametrize(
+    "key, field",
+    [
+        ("other/f/r/poses", "key"),
+        ("gmmap/f/r/scan", "key"),
+        ("gmmap/f/r/scan/1/2", "key"),
+        ("gmmap/f/r/scan/01", "key.node"),
+        ("gmmap/f/r/scan/-1", "key.node"),
+        ("gmmap/f/r/scan/*", "key.node"),
+        (f"gmmap/f/r/scan/{2**63}", "key.node"),
+        ("gmmap/f/r/scan/１", "key.node"),
+        ("gmmap/f f/r/poses", "key.fleet"),
+        ("gmmap/f/*/poses", "key.robot"),
+        ("gmmap/f/r/status", "key"),
+    ],
+)
 def test_parse_key_rejects(key, field):
     with pytest.raises(ProtocolError) as caught:
         parse_key(key)
@@ -428,8 +508,12 @@ def test_rejection_round_trip_and_never_mistaken_for_an_ack():
     assert decode(encode(refusal)) == refusal
     with pytest.raises(ProtocolError, match="type"):  # a receiver that waits for Acks drops it
         decode(encode(refusal), expect=Ack)
-    for bad, field in ((dict(reason="no quota"), "reason"), (dict(detail="x" * 1001), "detail"),
-                       (dict(kind="map"), "kind"), (dict(ids=(-1,)), "ids")):
+    for bad, field in (
+        (dict(reason="no quota"), "reason"),
+        (dict(detail="x" * 1001), "detail"),
+        (dict(kind="map"), "kind"),
+        (dict(ids=(-1,)), "ids"),
+    ):
         args = dict(fleet="f", robot="r", kind="scan", ids=(1,), reason="quota", detail="") | bad
         with pytest.raises(ProtocolError, match=field):
             Rejection(**args)

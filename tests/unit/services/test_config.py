@@ -1,4 +1,5 @@
 """The one configuration: defaults owned by each section, files, flags, validation by field."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -36,9 +37,13 @@ def test_the_3d_component_size_rule_has_one_home():
 
 @pytest.mark.parametrize("suffix", [".toml", ".yaml"])
 def test_a_file_round_trips_and_flags_win_over_it(tmp_path, suffix):
-    config = load_config(overrides={"fit": {"max_range": 30.0, "component_size": 0.5},
-                                    "server": {"zenoh_listen": ["tcp/127.0.0.1:7500"], "http": ""},
-                                    "agent": {"robot": "r1", "source": "sim:office:0:2"}})
+    config = load_config(
+        overrides={
+            "fit": {"max_range": 30.0, "component_size": 0.5},
+            "server": {"zenoh_listen": ["tcp/127.0.0.1:7500"], "http": ""},
+            "agent": {"robot": "r1", "source": "sim:office:0:2"},
+        }
+    )
     path = tmp_path / f"gmmap{suffix}"
     path.write_text(config.to_toml() if suffix == ".toml" else yaml.safe_dump(config.to_dict()))
     assert load_config(path) == config
@@ -48,8 +53,17 @@ def test_a_file_round_trips_and_flags_win_over_it(tmp_path, suffix):
 
 
 def test_cli_flags_reach_their_sections():
-    config = resolved("server", "--zenoh-connect", "tcp/127.0.0.1:7448", "--samples-per-cell", "2",
-                      "--prior", "0.5", "--robot-quota-mb", "0")
+    config = resolved(
+        "server",
+        "--zenoh-connect",
+        "tcp/127.0.0.1:7448",
+        "--samples-per-cell",
+        "2",
+        "--prior",
+        "0.5",
+        "--robot-quota-mb",
+        "0",
+    )
     assert config.server.listen == () and config.server.zenoh_connect == ("tcp/127.0.0.1:7448",)
     assert config.reconstruction == ReconstructionConfig(samples_per_cell=2.0, prior=0.5)
     assert config.server.robot_quota_mb == 0.0
@@ -57,19 +71,22 @@ def test_cli_flags_reach_their_sections():
     assert (agent.agent.resend_s, agent.fit.max_components) == (0.5, 64)
 
 
-@pytest.mark.parametrize("overrides, field", [
-    ({"fit": {"max_range": -1.0}}, "fit.max_range"),
-    ({"fit": {"points_per_component": float("nan")}}, "fit.points_per_component"),
-    ({"fit": {"max_iter": 2.5}}, "fit.max_iter"),
-    ({"fit": {"colour": "red"}}, "fit.colour"),
-    ({"reconstruction": {"prior": 0.0}}, "reconstruction.prior"),
-    ({"server": {"synchronous": "sometimes"}}, "server.synchronous"),
-    ({"server": {"zenoh_listen": [], "zenoh_connect": []}}, "server.zenoh_listen"),
-    ({"agent": {"robot": "not a robot id"}}, "agent.robot"),
-    ({"agent": {"encoding": "json"}}, "agent.encoding"),
-    ({"sim": {"robots": 0}}, "sim.robots"),
-    ({"simulator": {}}, "simulator"),
-])
+@pytest.mark.parametrize(
+    "overrides, field",
+    [
+        ({"fit": {"max_range": -1.0}}, "fit.max_range"),
+        ({"fit": {"points_per_component": float("nan")}}, "fit.points_per_component"),
+        ({"fit": {"max_iter": 2.5}}, "fit.max_iter"),
+        ({"fit": {"colour": "red"}}, "fit.colour"),
+        ({"reconstruction": {"prior": 0.0}}, "reconstruction.prior"),
+        ({"server": {"synchronous": "sometimes"}}, "server.synchronous"),
+        ({"server": {"zenoh_listen": [], "zenoh_connect": []}}, "server.zenoh_listen"),
+        ({"agent": {"robot": "not a robot id"}}, "agent.robot"),
+        ({"agent": {"encoding": "json"}}, "agent.encoding"),
+        ({"sim": {"robots": 0}}, "sim.robots"),
+        ({"simulator": {}}, "simulator"),
+    ],
+)
 def test_a_bad_value_is_refused_naming_its_field(overrides, field):
     with pytest.raises(ConfigError, match=f"^{field}: "):
         load_config(overrides=overrides)

@@ -1,4 +1,5 @@
 """Range-data readers: the real logs in ../shared/data, and malformed files written here."""
+
 from __future__ import annotations
 
 import bz2
@@ -7,8 +8,7 @@ import gzip
 import numpy as np
 import pytest
 
-from services.datasets import (DatasetError, count_scans, guess_format, match_by_timestamp,
-                               read_scans)
+from services.datasets import DatasetError, count_scans, guess_format, match_by_timestamp, read_scans
 from services.datasets.carmen import load_flaser, saturation_range
 from support.paths import DATA
 
@@ -38,6 +38,7 @@ def flaser(ranges, pose=(0.0, 0.0, 0.0), stamp=1.0) -> str:
 
 
 # --- real data ------------------------------------------------------------------------------
+
 
 @needs_data
 def test_intel_corrected(intel):
@@ -139,8 +140,9 @@ def test_keep_fraction_is_seeded(intel):
     kept = sum(len(s.hits) + len(s.no_return) for s in sparse)
     assert kept == pytest.approx(0.3 * 910 * 180, rel=0.01)
     again = list(read_scans(INTEL, keep_fraction=0.3, seed=7))
-    assert all(np.array_equal(a.hits, b.hits) and np.array_equal(a.no_return, b.no_return)
-               for a, b in zip(sparse, again))
+    assert all(
+        np.array_equal(a.hits, b.hits) and np.array_equal(a.no_return, b.no_return) for a, b in zip(sparse, again)
+    )
     other = next(read_scans(INTEL, keep_fraction=0.3, seed=8))
     assert not np.array_equal(other.hits, sparse[0].hits)
     full = {tuple(p) for p in intel[0].hits}
@@ -148,6 +150,7 @@ def test_keep_fraction_is_seeded(intel):
 
 
 # --- synthetic files ------------------------------------------------------------------------
+
 
 def test_carmen_gz_no_return_and_181_beams(tmp_path):
     ranges = [2.0] * 171 + [50.0] * 10  # 50 m ten times: the saturation value

@@ -1,4 +1,5 @@
 """PNG pictures of occupancy: Eq. 12 classes (free white, occupied black, unknown grey) and probabilities."""
+
 from __future__ import annotations
 
 import io
@@ -27,19 +28,26 @@ def test_class_colours():
 def test_2d_classes_at_the_default_variance_north_up():
     # sigma^2 = 0.06: thresholds (1 -+ sqrt(0.76)) / 2 = 0.0641, 0.9359.
     assert DEFAULT_VARIANCE == 0.06
-    prob = np.array([[0.0, 0.06, 0.07, 0.5],      # iy = 0, the southernmost row: the image's last
-                     [0.93, 0.94, 1.0, 0.51]], dtype=np.float32)
+    prob = np.array(
+        [
+            [0.0, 0.06, 0.07, 0.5],  # iy = 0, the southernmost row: the image's last
+            [0.93, 0.94, 1.0, 0.51],
+        ],
+        dtype=np.float32,
+    )
     image = pixels(occupancy_png(prob))
     assert image.shape == (2, 4)
-    assert image.tolist() == [[GREY, BLACK, BLACK, GREY],
-                              [WHITE, WHITE, GREY, GREY]]
+    assert image.tolist() == [[GREY, BLACK, BLACK, GREY], [WHITE, WHITE, GREY, GREY]]
 
 
-@pytest.mark.parametrize("variance, expected", [
-    (0.25, [WHITE, WHITE, GREY, BLACK, BLACK, BLACK]),   # the band closes: p = 0.5 alone stays unknown
-    (0.09, [WHITE, GREY, GREY, GREY, BLACK, BLACK]),     # thresholds 0.1 and 0.9
-    (0.0, [WHITE, GREY, GREY, GREY, GREY, BLACK]),       # only certainty is classified
-])
+@pytest.mark.parametrize(
+    "variance, expected",
+    [
+        (0.25, [WHITE, WHITE, GREY, BLACK, BLACK, BLACK]),  # the band closes: p = 0.5 alone stays unknown
+        (0.09, [WHITE, GREY, GREY, GREY, BLACK, BLACK]),  # thresholds 0.1 and 0.9
+        (0.0, [WHITE, GREY, GREY, GREY, GREY, BLACK]),  # only certainty is classified
+    ],
+)
 def test_variance_moves_the_thresholds(variance, expected):
     prob = np.array([[0.0, 0.11, 0.5, 0.51, 0.91, 1.0]], dtype=np.float32)
     assert pixels(occupancy_png(prob, variance))[0].tolist() == expected

@@ -1,4 +1,5 @@
 """`gmmap replay` end to end on the real Intel log and a Kurt3D scan."""
+
 import numpy as np
 from PIL import Image
 
@@ -30,8 +31,12 @@ def test_replay_bbox_is_exact_and_deterministic(data_dir, tmp_path):
     runs = []
     for name in ("a", "b"):
         out = tmp_path / f"{name}.npz"
-        assert main(["replay", log, "--bbox=-5,-5,5,3", "--resolution", "0.05", "--keep-fraction", "0.5",
-                     "--out", str(out)]) == 0
+        assert (
+            main(
+                ["replay", log, "--bbox=-5,-5,5,3", "--resolution", "0.05", "--keep-fraction", "0.5", "--out", str(out)]
+            )
+            == 0
+        )
         runs.append(np.load(out))
     assert np.array_equal(runs[0]["origin"], [-5.0, -5.0])
     assert runs[0]["prob"].shape == (160, 200)
@@ -40,13 +45,29 @@ def test_replay_bbox_is_exact_and_deterministic(data_dir, tmp_path):
 
 def test_raw_method_and_3d_replay(data_dir, tmp_path):
     out = tmp_path / "k.npz"
-    assert main(["replay", str(data_dir / "3d" / "kurt3d"), "--resolution", "0.25",
-                 "--bbox=-10,-10,-2,10,10,4", "--out", str(out), "--png", str(tmp_path / "k.png")]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(data_dir / "3d" / "kurt3d"),
+                "--resolution",
+                "0.25",
+                "--bbox=-10,-10,-2,10,10,4",
+                "--out",
+                str(out),
+                "--png",
+                str(tmp_path / "k.png"),
+            ]
+        )
+        == 0
+    )
     prob = np.load(out)["prob"]
     assert prob.shape == (24, 80, 80)
     assert (prob > 0.6).any() and (prob < 0.4).any()
-    assert main(["replay", str(data_dir / "3d" / "kurt3d"), "--method", "raw", "--resolution", "0.5",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["replay", str(data_dir / "3d" / "kurt3d"), "--method", "raw", "--resolution", "0.5", "--out", str(out)])
+        == 0
+    )
 
 
 def test_bad_log_gives_a_clear_error_with_the_line(tmp_path, capsys):
@@ -66,8 +87,12 @@ def test_replay_through_each_encoding_gives_nearly_the_same_map(data_dir, tmp_pa
     maps = {}
     for encoding in ("none", "f32", "q"):
         out = tmp_path / f"{encoding}.npz"
-        assert main(["replay", log, "--bbox=-10,-10,5,5", "--resolution", "0.1", "--encoding", encoding,
-                     "--out", str(out)]) == 0
+        assert (
+            main(
+                ["replay", log, "--bbox=-10,-10,5,5", "--resolution", "0.1", "--encoding", encoding, "--out", str(out)]
+            )
+            == 0
+        )
         maps[encoding] = np.load(out)["prob"]
     # Rounding moves a component by micrometres (f32) or millimetres (q); where that changes a
     # component's sample count the seeded stream shifts, so cells differ by Monte-Carlo noise.
@@ -89,8 +114,9 @@ def test_analytic_method_is_2d_only_and_close_to_monte_carlo(data_dir, tmp_path)
     maps = {}
     for method in ("mc", "analytic"):
         out = tmp_path / f"{method}.npz"
-        assert main(["replay", log, "--bbox=-6,-6,4,4", "--resolution", "0.1", "--method", method,
-                     "--out", str(out)]) == 0
+        assert (
+            main(["replay", log, "--bbox=-6,-6,4,4", "--resolution", "0.1", "--method", method, "--out", str(out)]) == 0
+        )
         maps[method] = np.load(out)["prob"]
     assert np.abs(maps["mc"] - maps["analytic"]).mean() < 0.03
     assert main(["replay", str(data_dir / "3d" / "kurt3d"), "--method", "analytic"]) == 2

@@ -1,5 +1,6 @@
 """gmm_core.analytic.cells: occupancy (Eq. 11) and evidence at given cells, and the checks of
 dimensions and cell sizes."""
+
 import numpy as np
 import pytest
 

@@ -1,6 +1,7 @@
 """gmm_core.analytic.evidence_2d against references: scipy quadrature of the defining integrals,
 closed forms, and Monte Carlo of the ray-tracer's counting rule (a ray that crosses a cell and ends
 outside it is a miss; a sample inside is a hit, or a miss for a max-range component)."""
+
 import math
 
 import numpy as np
@@ -34,8 +35,9 @@ def rect_mass_reference(mean, cov, center, size):
 
     def integrand(x):
         my = mean[1] + r * sy * (x - mean[0]) / sx
-        return stats.norm.pdf(x, mean[0], sx) * (stats.norm.cdf((center[1] + h - my) / s)
-                                                  - stats.norm.cdf((center[1] - h - my) / s))
+        return stats.norm.pdf(x, mean[0], sx) * (
+            stats.norm.cdf((center[1] + h - my) / s) - stats.norm.cdf((center[1] - h - my) / s)
+        )
 
     return integrate.quad(integrand, center[0] - h, center[0] + h, epsabs=1e-14, epsrel=1e-12, limit=400)[0]
 
@@ -59,12 +61,14 @@ def beyond_reference(mean, cov, origin, center, size):
         u = np.array([math.cos(t + base), math.sin(t + base)])
         r_exit = min(-(inward[i] @ (q - poly[i])) / (inward[i] @ u) for i in range(4) if inward[i] @ u < 0)
         a = -(q @ u)
-        return math.exp(-(q @ q - a * a) / 2) / (2 * math.pi) * (
-            math.exp(-(r_exit - a) ** 2 / 2) + a * math.sqrt(math.pi / 2) * math.erfc((r_exit - a) / math.sqrt(2)))
+        return (
+            math.exp(-(q @ q - a * a) / 2)
+            / (2 * math.pi)
+            * (math.exp(-((r_exit - a) ** 2) / 2) + a * math.sqrt(math.pi / 2) * math.erfc((r_exit - a) / math.sqrt(2)))
+        )
 
     inner = sorted(angles)[1:-1]
-    return integrate.quad(integrand, angles.min(), angles.max(), points=inner,
-                          epsabs=1e-13, epsrel=1e-12, limit=400)[0]
+    return integrate.quad(integrand, angles.min(), angles.max(), points=inner, epsabs=1e-13, epsrel=1e-12, limit=400)[0]
 
 
 def random_case_2d(rng, kind, thinnest=None):
@@ -78,10 +82,12 @@ def random_case_2d(rng, kind, thinnest=None):
     mean = rng.uniform(-3, 3, 2)
     origin = mean + rng.normal(0, 1, 2) * rng.uniform(0.2, 4)
     size = 10 ** rng.uniform(-2, -0.5)
-    center = [mean + rot @ (rng.normal(0, 1, 2) * sd),
-              origin + (mean - origin) * rng.uniform(0.05, 1.5),
-              mean + rot @ (rng.normal(0, 4, 2) * sd),
-              origin + rng.uniform(-0.7, 0.7, 2) * size][kind]
+    center = [
+        mean + rot @ (rng.normal(0, 1, 2) * sd),
+        origin + (mean - origin) * rng.uniform(0.05, 1.5),
+        mean + rot @ (rng.normal(0, 4, 2) * sd),
+        origin + rng.uniform(-0.7, 0.7, 2) * size,
+    ][kind]
     return mean, cov, origin, center, size
 
 
@@ -89,8 +95,11 @@ def test_eq5_matches_its_scipy_twin_and_the_wedge_integral_in_front_of_the_compo
     rng = np.random.default_rng(4)
     p, r = rng.uniform(0, 50, 200), rng.uniform(0, 60, 200)
     t1, t2 = np.sort(rng.uniform(-1.5, 1.5, (2, 200)), axis=0)
-    twin = 0.25 * special.erfc((r - p) / np.sqrt(2)) * (special.erf(p * np.sin(t2) / np.sqrt(2))
-                                                         - special.erf(p * np.sin(t1) / np.sqrt(2)))
+    twin = (
+        0.25
+        * special.erfc((r - p) / np.sqrt(2))
+        * (special.erf(p * np.sin(t2) / np.sqrt(2)) - special.erf(p * np.sin(t1) / np.sqrt(2)))
+    )
     np.testing.assert_allclose(eq5_by_angles(p, t1, t2, r), twin, rtol=1e-12, atol=1e-15)
     for _ in range(20):
         # A cell at least 7 isotropic units in front of the mean, sensor far outside: Eq. 5 with the
@@ -208,7 +217,10 @@ def test_intel_analytic_map_is_as_good_as_monte_carlo(intel_scans):
     grid = Grid.from_bbox(*data_extent(intel_scans, config.max_range), 0.1)
     truth = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in intel_scans], config.max_range)
     analytic_p = map_estimate(*analytic_map_2d([(m, s.pose) for m, s in zip(models, intel_scans)], grid))
-    mc_p = map_estimate(*reconstruct(grid, [(m, s.pose, scan_seed(0, s.index)) for m, s in zip(models, intel_scans)],
-                                     samples_per_cell=4.0))
+    mc_p = map_estimate(
+        *reconstruct(
+            grid, [(m, s.pose, scan_seed(0, s.index)) for m, s in zip(models, intel_scans)], samples_per_cell=4.0
+        )
+    )
     analytic_auroc, mc_auroc = grid_auroc(analytic_p, *truth), grid_auroc(mc_p, *truth)
     assert analytic_auroc >= 0.98 and abs(analytic_auroc - mc_auroc) <= 0.01

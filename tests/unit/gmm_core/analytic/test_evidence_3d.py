@@ -1,6 +1,7 @@
 """gmm_core.analytic.evidence_3d against closed forms, scipy quadrature (Eq. 8) and Monte Carlo of the
 ray-tracer's counting rule (a ray that crosses a cube and ends outside it is a miss; a sample inside
 is a hit, or a miss for a max-range component)."""
+
 import math
 
 import numpy as np
@@ -39,8 +40,9 @@ def test_edge_integral_eq8_is_the_closed_form_of_the_approximated_integrand():
         # A steep edge saturates e_hat within 3/slope of its y = 0 end: tell quad where.
         bends = [x0 + (sign * y - y0) / slope for y in (0.1, 0.3, 1.0, 3.0, 10.0)]
         bends = [x for x in bends if min(x0, x1) < x < max(x0, x1)] or None
-        reference = integrate.quad(approximated_integrand, x0, x1, args=(x0, y0, slope), points=bends,
-                                   epsabs=1e-13, epsrel=1e-12, limit=400)[0]
+        reference = integrate.quad(
+            approximated_integrand, x0, x1, args=(x0, y0, slope), points=bends, epsabs=1e-13, epsrel=1e-12, limit=400
+        )[0]
         got = edge_piece_eq8(x0, y0, x1, y1, sign)
         assert got == pytest.approx(reference, abs=1e-11)
 
@@ -54,11 +56,13 @@ def random_case_3d(rng, kind):
     mean = rng.uniform(-2, 2, 3)
     origin = mean + rng.normal(0, 1, 3) * rng.uniform(0.5, 3)
     size = 10 ** rng.uniform(-1.3, -0.6)
-    center = [mean + rot @ (rng.normal(0, 1, 3) * sd),
-              origin + (mean - origin) * rng.uniform(0.3, 1.2) + rng.normal(0, 0.5, 3) * sd[-1],
-              mean + rot @ (rng.normal(0, 3, 3) * sd),
-              origin + rng.uniform(-0.5, 0.5, 3) * size,
-              mean + rot @ (rng.normal(0, 1, 3) * sd)][kind]
+    center = [
+        mean + rot @ (rng.normal(0, 1, 3) * sd),
+        origin + (mean - origin) * rng.uniform(0.3, 1.2) + rng.normal(0, 0.5, 3) * sd[-1],
+        mean + rot @ (rng.normal(0, 3, 3) * sd),
+        origin + rng.uniform(-0.5, 0.5, 3) * size,
+        mean + rot @ (rng.normal(0, 1, 3) * sd),
+    ][kind]
     return mean, cov, origin, center, size
 
 

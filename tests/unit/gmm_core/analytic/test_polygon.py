@@ -1,5 +1,6 @@
 """Standard normal mass of polygons against scipy quadrature: exact (gmm_core.analytic.polygon), and
 by Eq. 6-9 (gmm_core.analytic.evidence_3d) within the error of the erf approximation (Eq. 7)."""
+
 import numpy as np
 import pytest
 from scipy import integrate, stats
@@ -13,16 +14,20 @@ def polygon_mass_reference(vertices):
     edges = [(v[i], v[(i + 1) % len(v)]) for i in range(len(v))]
 
     def y_span(x):
-        ys = [a[1] + (b[1] - a[1]) * (x - a[0]) / (b[0] - a[0]) for a, b in edges
-              if a[0] != b[0] and min(a[0], b[0]) <= x <= max(a[0], b[0])]
+        ys = [
+            a[1] + (b[1] - a[1]) * (x - a[0]) / (b[0] - a[0])
+            for a, b in edges
+            if a[0] != b[0] and min(a[0], b[0]) <= x <= max(a[0], b[0])
+        ]
         return (min(ys), max(ys)) if ys else (0.0, 0.0)
 
     def integrand(x):
         low, high = y_span(x)
         return stats.norm.pdf(x) * (stats.norm.cdf(high) - stats.norm.cdf(low))
 
-    return integrate.quad(integrand, v[:, 0].min(), v[:, 0].max(), points=sorted(v[:, 0]),
-                          epsabs=1e-13, epsrel=1e-12, limit=400)[0]
+    return integrate.quad(
+        integrand, v[:, 0].min(), v[:, 0].max(), points=sorted(v[:, 0]), epsabs=1e-13, epsrel=1e-12, limit=400
+    )[0]
 
 
 def random_convex_polygon(rng):

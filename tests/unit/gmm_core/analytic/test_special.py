@@ -1,4 +1,5 @@
 """gmm_core.analytic.special against scipy quadrature."""
+
 import math
 
 import numpy as np
@@ -15,7 +16,12 @@ def test_bivariate_normal_orthant_matches_quadrature():
         r = rng.uniform(-0.999, 0.999)
         reference = integrate.quad(
             lambda x, k, r: stats.norm.pdf(x) * stats.norm.sf((k - r * x) / math.sqrt(1 - r * r)),
-            h, np.inf, args=(k, r), epsabs=1e-14, epsrel=1e-12)[0]
+            h,
+            np.inf,
+            args=(k, r),
+            epsabs=1e-14,
+            epsrel=1e-12,
+        )[0]
         # Genz's algorithm is good to ~1e-15; quad to ~1e-12 here.
         assert bvn_upper(h, k, r) == pytest.approx(reference, abs=1e-10)
     # Fully correlated limits: one half-line, or the interval between the two bounds.

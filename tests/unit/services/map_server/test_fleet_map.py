@@ -1,4 +1,5 @@
 """The fleet map: served maps equal offline reconstruction, re-posing, caches, the node index."""
+
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -103,8 +104,9 @@ def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted):
     (only the difference traced) equals the tile a new FleetMap traces from scratch."""
     scans, models = fitted
     served = FleetMap("f")
-    messages = [ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i))
-                for i, (s, m) in enumerate(zip(scans, models))]
+    messages = [
+        ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i)) for i, (s, m) in enumerate(zip(scans, models))
+    ]
 
     def fresh():
         fleet = FleetMap("f")
@@ -142,8 +144,9 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
 
     monkeypatch.setattr(TileCache, "_trace_afresh", traced_afresh)
     scans, models = fitted
-    messages = [ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i))
-                for i, (s, m) in enumerate(zip(scans, models))]
+    messages = [
+        ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i)) for i, (s, m) in enumerate(zip(scans, models))
+    ]
     corner = Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], 0.1)
 
     def fresh(grid):
@@ -159,7 +162,9 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
         for msg in messages[added:upto]:
             served.add_scan(msg)
         added = upto
-        updates.append(PoseGraphUpdate("f", "r1", step + 1, tuple((s.index, s.pose) for s in scans[upto - 20:upto:2])))
+        updates.append(
+            PoseGraphUpdate("f", "r1", step + 1, tuple((s.index, s.pose) for s in scans[upto - 20 : upto : 2]))
+        )
         served.apply_poses(updates[-1])
         assert served.cache_stats()["change_log"] <= 64
         assert np.array_equal(served.occupancy(GRID), fresh(GRID)), f"step {step}"
@@ -190,8 +195,12 @@ def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted)
 def test_tiles_traced_from_many_threads_at_once_equal_one_at_a_time(fitted):
     """Tiles trace on the requesting threads with no lock around the kernel (trace_threads=1)."""
     scans, models = fitted
-    tiles = [Grid.from_bbox([x, y], [x + 4.0, y + 4.0], r) for x in (-8.0, -4.0, 0.0, 4.0) for y in (-12.0, -4.0)
-             for r in (0.05, 0.1)]
+    tiles = [
+        Grid.from_bbox([x, y], [x + 4.0, y + 4.0], r)
+        for x in (-8.0, -4.0, 0.0, 4.0)
+        for y in (-12.0, -4.0)
+        for r in (0.05, 0.1)
+    ]
     fleets = [FleetMap("f"), FleetMap("f")]
     for fleet in fleets:
         for s, m in zip(scans, models):

@@ -1,4 +1,5 @@
 """The node store's change log: positions survive dropped entries."""
+
 import pytest
 
 from services.map_server import nodes

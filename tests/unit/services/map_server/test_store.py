@@ -1,4 +1,5 @@
 """The durable pieces without a network: the server's SQLite store and ingest path, the agent's outbox."""
+
 from __future__ import annotations
 
 import time
@@ -34,7 +35,10 @@ def test_store_keeps_each_scan_once_and_survives_reopening(tmp_path, model):
     first = scan(model, node=3)
     assert store.put_scan(first, encode(first)) is True
     assert store.put_scan(first, b"resent bytes are not stored") is False
-    assert store.put_scans([(scan(model, node=1), encode(scan(model, node=1))), (first, encode(first))]) == [True, False]
+    assert store.put_scans([(scan(model, node=1), encode(scan(model, node=1))), (first, encode(first))]) == [
+        True,
+        False,
+    ]
     store.close()
     store = Store(tmp_path)
     assert store.scan_count("default") == 2 and store.nodes("default", "r") == {1, 3}
@@ -78,18 +82,27 @@ def run_ingest(state, *phases):
 def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, model):
     state = ServerState("default", FleetMap("default"), Store(tmp_path))
     good = scan(model, node=0)
-    three_d = ScanMessage("default", "r", 9, 0.0, fit_scan(np.random.default_rng(0).normal(size=(30, 3)) + 3,
-                                                           np.zeros((0, 3))), Pose.identity(3))
-    acks = run_ingest(state, [
-        (scan_key("default", "r", 0), encode(good)),
-        (scan_key("default", "r", 0), encode(good)),  # a resend: acked again, stored once
-        (scan_key("default", "x", 0), encode(good)),  # key names another robot
-        (scan_key("default", "r", 5), encode(good)),  # key names another node
-        (scan_key("default", "r", 9), encode(three_d)),  # a 3D scan into a 2D map
-        (poses_key("default", "r"), encode(good)),  # a scan on the pose key
-        (scan_key("default", "r", 1), b"\x00garbage"),
-        ("gmmap/other/r/scan/1", encode(good)),  # another fleet
-    ])
+    three_d = ScanMessage(
+        "default",
+        "r",
+        9,
+        0.0,
+        fit_scan(np.random.default_rng(0).normal(size=(30, 3)) + 3, np.zeros((0, 3))),
+        Pose.identity(3),
+    )
+    acks = run_ingest(
+        state,
+        [
+            (scan_key("default", "r", 0), encode(good)),
+            (scan_key("default", "r", 0), encode(good)),  # a resend: acked again, stored once
+            (scan_key("default", "x", 0), encode(good)),  # key names another robot
+            (scan_key("default", "r", 5), encode(good)),  # key names another node
+            (scan_key("default", "r", 9), encode(three_d)),  # a 3D scan into a 2D map
+            (poses_key("default", "r"), encode(good)),  # a scan on the pose key
+            (scan_key("default", "r", 1), b"\x00garbage"),
+            ("gmmap/other/r/scan/1", encode(good)),  # another fleet
+        ],
+    )
     assert [(k, a.kind, a.ids) for k, a in acks] == [("gmmap/default/r/ack", "scan", (0, 0))]
     assert state.store.nodes("default", "r") == {0}
     text = state.metrics.render().decode()
@@ -101,9 +114,14 @@ def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, mod
 def test_a_correction_that_arrives_before_its_scan_is_applied_to_it(tmp_path, model):
     state = ServerState("default", FleetMap("default"), Store(tmp_path))
     update = poses("r", 1, [(0, 4.0), (1, 6.0)])
-    acks = run_ingest(state, [(scan_key("default", "r", 0), encode(scan(model, node=0, x=0.0))),
-                              (poses_key("default", "r"), encode(update))],
-                      [(scan_key("default", "r", 1), encode(scan(model, node=1, x=0.0)))])  # after its pose
+    acks = run_ingest(
+        state,
+        [
+            (scan_key("default", "r", 0), encode(scan(model, node=0, x=0.0))),
+            (poses_key("default", "r"), encode(update)),
+        ],
+        [(scan_key("default", "r", 1), encode(scan(model, node=1, x=0.0)))],
+    )  # after its pose
     assert [(a.kind, a.ids) for _, a in acks] == [("scan", (0,)), ("poses", (1,)), ("scan", (1,))]
     assert state.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
     # A restart replays the same map.

@@ -1,5 +1,6 @@
 """report.json's keys are a contract: the typed report writes exactly them, in their order; report.md
 renders it, with the run's configuration."""
+
 import json
 from dataclasses import fields
 
@@ -8,41 +9,132 @@ from services.sim.report import AurocPoint, RobotReport, SimReport
 
 # report.json as scripts outside the repository read it (the keys before `config` predate the typed report)
 REPORT_KEYS = [
-    "world", "dimension", "robots", "duration_s", "rate_hz", "seed", "http_clients", "component_size", "wall_s",
-    "scans_published", "scans_stored", "scans_resent", "bytes_on_wire", "bytes_on_wire_down", "payload_bytes",
-    "framing_bytes_per_message", "raw_scan_bytes", "grid_delta_bytes", "octomap_delta_bytes", "components",
-    "auroc", "auroc_before_correction", "auroc_published_estimates", "auroc_resolution_m", "auroc_cells",
-    "ingest_lag_p50_s", "ingest_lag_p99_s", "ingest_lag_max_s", "tile_requests", "tile_errors", "tile_error_kinds",
-    "tile_latency_p50_s", "tile_latency_p99_s", "cpu_s", "realtime_factor", "schedule_slip_s",
-    "server_rss_start_mb", "server_rss_end_mb", "server_rss_max_mb", "server_rss_growth_mb", "server_rss_over_time",
-    "per_robot", "auroc_over_time", "config",
+    "world",
+    "dimension",
+    "robots",
+    "duration_s",
+    "rate_hz",
+    "seed",
+    "http_clients",
+    "component_size",
+    "wall_s",
+    "scans_published",
+    "scans_stored",
+    "scans_resent",
+    "bytes_on_wire",
+    "bytes_on_wire_down",
+    "payload_bytes",
+    "framing_bytes_per_message",
+    "raw_scan_bytes",
+    "grid_delta_bytes",
+    "octomap_delta_bytes",
+    "components",
+    "auroc",
+    "auroc_before_correction",
+    "auroc_published_estimates",
+    "auroc_resolution_m",
+    "auroc_cells",
+    "ingest_lag_p50_s",
+    "ingest_lag_p99_s",
+    "ingest_lag_max_s",
+    "tile_requests",
+    "tile_errors",
+    "tile_error_kinds",
+    "tile_latency_p50_s",
+    "tile_latency_p99_s",
+    "cpu_s",
+    "realtime_factor",
+    "schedule_slip_s",
+    "server_rss_start_mb",
+    "server_rss_end_mb",
+    "server_rss_max_mb",
+    "server_rss_growth_mb",
+    "server_rss_over_time",
+    "per_robot",
+    "auroc_over_time",
+    "config",
 ]
-ROBOT_KEYS = ["scans_published", "scans_stored", "bytes_on_wire", "bytes_on_wire_down", "payload_bytes", "messages",
-              "scans_resent", "framing_bytes_per_message", "raw_scan_bytes", "grid_delta_bytes",
-              "octomap_delta_bytes", "components", "ingest_lag_p99_s", "agent_exit"]
+ROBOT_KEYS = [
+    "scans_published",
+    "scans_stored",
+    "bytes_on_wire",
+    "bytes_on_wire_down",
+    "payload_bytes",
+    "messages",
+    "scans_resent",
+    "framing_bytes_per_message",
+    "raw_scan_bytes",
+    "grid_delta_bytes",
+    "octomap_delta_bytes",
+    "components",
+    "ingest_lag_p99_s",
+    "agent_exit",
+]
 SNAPSHOT_KEYS = ["t_s", "scans", "served", "published_estimates", "odometry"]
 
 
 def robot(published: int) -> RobotReport:
-    return RobotReport(scans_published=published, scans_stored=published, bytes_on_wire=9000, bytes_on_wire_down=800,
-                       payload_bytes={"scan": 7000, "poses": 500, "ack": 300}, messages={"scan": 10, "poses": 1,
-                                                                                         "ack": 11},
-                       scans_resent=0, framing_bytes_per_message=136.4, raw_scan_bytes=14400, grid_delta_bytes=5000,
-                       octomap_delta_bytes=None, components=120, ingest_lag_p99_s=0.05, agent_exit=0)
+    return RobotReport(
+        scans_published=published,
+        scans_stored=published,
+        bytes_on_wire=9000,
+        bytes_on_wire_down=800,
+        payload_bytes={"scan": 7000, "poses": 500, "ack": 300},
+        messages={"scan": 10, "poses": 1, "ack": 11},
+        scans_resent=0,
+        framing_bytes_per_message=136.4,
+        raw_scan_bytes=14400,
+        grid_delta_bytes=5000,
+        octomap_delta_bytes=None,
+        components=120,
+        ingest_lag_p99_s=0.05,
+        agent_exit=0,
+    )
 
 
 def sample_report(config: dict) -> SimReport:
     return SimReport(
-        world="office", dimension=2, robots=2, duration_s=2.0, rate_hz=5.0, seed=0, http_clients=1,
-        component_size=None, wall_s=12.3, scans_published=20, scans_stored=20, scans_resent=0, bytes_on_wire=18000,
-        bytes_on_wire_down=1600, payload_bytes={"scan": 14000, "poses": 1000, "ack": 600},
-        framing_bytes_per_message=136.4, raw_scan_bytes=28800, grid_delta_bytes=10000, octomap_delta_bytes=None,
-        components=240, auroc=0.93, auroc_before_correction=0.81, auroc_published_estimates=0.88,
-        auroc_resolution_m=0.1, auroc_cells=4321, ingest_lag_p50_s=0.01, ingest_lag_p99_s=0.05,
-        ingest_lag_max_s=0.07, tile_requests=40, tile_errors=1, tile_error_kinds={"HTTP 503": 1},
-        tile_latency_p50_s=0.02, tile_latency_p99_s=0.2, cpu_s={"server": 3.1, "agents": 4.2, "harness": 1.0},
-        realtime_factor=0.55, schedule_slip_s=0.1, server_rss_start_mb=120.0, server_rss_end_mb=130.0,
-        server_rss_max_mb=131.0, server_rss_growth_mb=10.0, server_rss_over_time=[(0.0, 120.0), (1.0, 130.0)],
+        world="office",
+        dimension=2,
+        robots=2,
+        duration_s=2.0,
+        rate_hz=5.0,
+        seed=0,
+        http_clients=1,
+        component_size=None,
+        wall_s=12.3,
+        scans_published=20,
+        scans_stored=20,
+        scans_resent=0,
+        bytes_on_wire=18000,
+        bytes_on_wire_down=1600,
+        payload_bytes={"scan": 14000, "poses": 1000, "ack": 600},
+        framing_bytes_per_message=136.4,
+        raw_scan_bytes=28800,
+        grid_delta_bytes=10000,
+        octomap_delta_bytes=None,
+        components=240,
+        auroc=0.93,
+        auroc_before_correction=0.81,
+        auroc_published_estimates=0.88,
+        auroc_resolution_m=0.1,
+        auroc_cells=4321,
+        ingest_lag_p50_s=0.01,
+        ingest_lag_p99_s=0.05,
+        ingest_lag_max_s=0.07,
+        tile_requests=40,
+        tile_errors=1,
+        tile_error_kinds={"HTTP 503": 1},
+        tile_latency_p50_s=0.02,
+        tile_latency_p99_s=0.2,
+        cpu_s={"server": 3.1, "agents": 4.2, "harness": 1.0},
+        realtime_factor=0.55,
+        schedule_slip_s=0.1,
+        server_rss_start_mb=120.0,
+        server_rss_end_mb=130.0,
+        server_rss_max_mb=131.0,
+        server_rss_growth_mb=10.0,
+        server_rss_over_time=[(0.0, 120.0), (1.0, 130.0)],
         per_robot={"r0": robot(10), "r1": robot(10)},
         auroc_over_time=[AurocPoint(2.0, 10, 0.9, None, 0.8), AurocPoint(4.0, 20, 0.93, 0.88, 0.81)],
         config=config,
@@ -73,8 +165,10 @@ def test_markdown_shows_the_figures_and_the_configuration():
     assert "| tiles fetched / errors; latency p50 / p99 (s) | 40 / 1 (HTTP 503: 1); 0.02 / 0.2 |" in text
     assert "| r1 | 10 | 10 | 9,000 | 14,400 | 5,000 | - | 136 | 0.05 |" in text
     assert "## How it is measured\n\nBytes. `bytes_on_wire`" in text
-    assert text.endswith('## Configuration\n\nThe resolved configuration of the run, as `config` in report.json:\n\n'
-                         '```json\n{\n  "fit": {\n    "max_range": 10.0\n  }\n}\n```\n')
+    assert text.endswith(
+        "## Configuration\n\nThe resolved configuration of the run, as `config` in report.json:\n\n"
+        '```json\n{\n  "fit": {\n    "max_range": 10.0\n  }\n}\n```\n'
+    )
     assert "None recorded" in markdown(sample_report({}))
 
 

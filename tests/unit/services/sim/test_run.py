@@ -1,13 +1,14 @@
 """matplotlib is needed for --report only, and its absence stops `gmmap sim --report` before the run."""
+
 import subprocess
 import sys
 
 import pytest
-from support.paths import ROOT
 
 import services.sim.run
 from services.cli import main
 from services.config import load_config
+from support.paths import ROOT
 
 
 @pytest.fixture

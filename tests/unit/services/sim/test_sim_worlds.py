@@ -1,4 +1,5 @@
 """Simulated worlds, sensors, paths and odometry: ground truth consistent with the beams, and offline maps."""
+
 import heapq
 
 import numpy as np
@@ -10,8 +11,16 @@ from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
 from services.sim.sensor import Laser2D, Lidar3D, beam_directions, sensor_for, simulate_scan
-from services.sim.trajectory import (Motion, OdometryNoise, _astar, _offsets, odometry, path_pose, plan_paths,
-                                     robot_events)
+from services.sim.trajectory import (
+    Motion,
+    OdometryNoise,
+    _astar,
+    _offsets,
+    odometry,
+    path_pose,
+    plan_paths,
+    robot_events,
+)
 from services.sim.worlds import World, make_world
 
 
@@ -28,6 +37,7 @@ def random_world(dim: int, seed: int) -> World:
 
 # --- references ----------------------------------------------------------------------------------
 
+
 def cast_reference(world: World, origin, directions, max_range):
     """Slab test of every ray against every solid cell box; the raster's boundary counts as solid."""
     res = world.raster.resolution
@@ -37,8 +47,11 @@ def cast_reference(world: World, origin, directions, max_range):
         ta, tb = (lo[None] - origin) / directions[:, None], (hi[None] - origin) / directions[:, None]
         enter = np.where(directions[:, None] != 0, np.minimum(ta, tb), -np.inf).max(axis=2)
         leave = np.where(directions[:, None] != 0, np.maximum(ta, tb), np.inf).min(axis=2)
-        exit_raster = np.where(directions != 0, np.maximum((world.raster.origin - origin) / directions,
-                                                           (world.raster.upper - origin) / directions), np.inf)
+        exit_raster = np.where(
+            directions != 0,
+            np.maximum((world.raster.origin - origin) / directions, (world.raster.upper - origin) / directions),
+            np.inf,
+        )
     first = np.where((leave > enter) & (leave > 0), np.maximum(enter, 0), np.inf).min(axis=1)
     ranges = np.minimum(first, exit_raster.min(axis=1))
     return np.where(ranges <= max_range, ranges, np.inf)
@@ -78,6 +91,7 @@ def dijkstra_cost(free, start, goal, offsets):
 
 # --- kernels against their twins ------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_cast_matches_the_slab_reference(dim):
     world = random_world(dim, dim)
@@ -96,8 +110,11 @@ def test_cast_matches_the_slab_reference(dim):
 def test_solid_near_matches_the_overlap_reference(dim, margin):
     world = random_world(dim, 10 + dim)
     for resolution, shift in ((0.25, 0.0), (0.37, 0.113), (0.1, -0.05)):
-        grid = Grid(world.raster.origin + shift - 0.2, resolution, tuple(np.asarray(world.raster.shape) * 0.25
-                                                                           // resolution + 3))
+        grid = Grid(
+            world.raster.origin + shift - 0.2,
+            resolution,
+            tuple(np.asarray(world.raster.shape) * 0.25 // resolution + 3),
+        )
         assert np.array_equal(world.solid_near(grid, margin), solid_near_reference(world, grid, margin))
 
 
@@ -120,6 +137,7 @@ def test_astar_finds_a_shortest_path(dim):
 
 
 # --- worlds and sensors ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("name", ["office", "warehouse", "mine"])
 def test_a_beam_ends_where_the_world_says(worlds, name):
@@ -178,6 +196,7 @@ def test_same_seed_same_world_and_paths(worlds):
 
 # --- paths, odometry, events ----------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ["office", "warehouse", "mine"])
 def test_paths_keep_their_clearance(worlds, name):
     world = worlds[name]
@@ -194,15 +213,19 @@ def test_paths_keep_their_clearance(worlds, name):
         between = position[:-1, None] + np.linspace(0, 1, 5)[None, :, None] * np.diff(position, axis=0)[:, None]
         around = between.reshape(-1, 1, world.dim) + np.concatenate([np.zeros((1, world.dim)), ring])[None]
         assert not world.occupied(around.reshape(-1, world.dim)).any()
-    assert min(np.linalg.norm(a[0, :-1] - b[0, :-1]) for i, a in enumerate(paths) for b in paths[i + 1:]) > 1.0
+    assert min(np.linalg.norm(a[0, :-1] - b[0, :-1]) for i, a in enumerate(paths) for b in paths[i + 1 :]) > 1.0
 
 
 def test_odometry_drift_grows_with_distance(worlds):
     path = plan_paths(worlds["office"], 1, 600, seed=1)[0]
-    errors = np.array([np.linalg.norm(odometry(path, OdometryNoise(), np.random.default_rng(s))[:, :2]
-                                      - path[:, :2], axis=1) for s in range(30)])
+    errors = np.array(
+        [
+            np.linalg.norm(odometry(path, OdometryNoise(), np.random.default_rng(s))[:, :2] - path[:, :2], axis=1)
+            for s in range(30)
+        ]
+    )
     assert np.all(errors[:, 0] == 0)
-    rms = np.sqrt((errors ** 2).mean(axis=0))
+    rms = np.sqrt((errors**2).mean(axis=0))
     assert 0 < rms[50] < rms[200] < rms[599]
     assert 0.05 < rms[599] < 0.05 * 120  # after 120 m: off, but by less than 5 % of the distance
 
@@ -227,14 +250,16 @@ def test_events_publish_estimates_and_corrections(worlds):
 
 # --- offline maps against ground truth --------------------------------------------------------------
 
+
 def map_auroc(world, scans, models, resolution, raw_range):
     """AUROC of the GMM map against ground truth on the cells the raw beams observed."""
     points = np.concatenate([s.pose.apply(s.hits) for s in scans])
     grid = Grid.from_bbox(points.min(axis=0) - 0.5, points.max(axis=0) + 0.5, resolution)
     raw_hits, raw_misses = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in scans], raw_range)
     observed = (raw_hits + raw_misses) > 0
-    hits, misses = reconstruct(grid, [(m, s.pose, scan_seed(0, s.index)) for m, s in zip(models, scans)],
-                               samples_per_cell=4.0)
+    hits, misses = reconstruct(
+        grid, [(m, s.pose, scan_seed(0, s.index)) for m, s in zip(models, scans)], samples_per_cell=4.0
+    )
     return auroc(map_estimate(hits, misses)[observed], world.ground_truth(grid)[observed])
 
 

@@ -1,11 +1,11 @@
 """The light list of world names is the registry's, and importing it pulls in no numba."""
+
 import subprocess
 import sys
 
-from support.paths import ROOT
-
 from services.sim.world_names import WORLD_NAMES
 from services.sim.worlds import WORLDS
+from support.paths import ROOT
 
 
 def test_world_names_are_the_registrys_keys_sorted():
