@@ -53,7 +53,7 @@ def _fit_flags(p: argparse.ArgumentParser) -> None:
     _setting(p, "--max-components", "fit.max_components", type=int, metavar="K", help="per mixture")
 
 
-def _resolved(args) -> GmmapConfig:
+def resolve_config(args) -> GmmapConfig:
     """--config, then the flags that were given, over the defaults."""
     overrides: dict[str, dict] = {}
     for key, value in vars(args).items():
@@ -106,7 +106,7 @@ def cmd_replay(args) -> int:
         )
     )
     start, bars = _progress_bars()
-    config = _resolved(args)
+    config = resolve_config(args)
     result = replay(
         scans,
         resolution=args.resolution,
@@ -152,7 +152,7 @@ def cmd_inspect(args) -> int:
 
     scans = list(read_scans(args.log, args.format))
     dim = scans[0].pose.dim if scans else 2
-    config = _resolved(args).fit.for_dimension(dim)
+    config = resolve_config(args).fit.for_dimension(dim)
     start, bars = _progress_bars()
     models = fit_scans(scans, config, start("fit", len(scans)))
     for bar in bars:
@@ -195,7 +195,7 @@ def cmd_server(args) -> int:
     from services.map_server.server import run_server
 
     _logging(args.verbose)
-    config = _resolved(args)
+    config = resolve_config(args)
     return run_server(config.server, config.reconstruction)
 
 
@@ -210,14 +210,14 @@ def cmd_agent(args) -> int:
     from services.agent.agent import run_agent
 
     _logging(args.verbose)
-    config = _resolved(args)
+    config = resolve_config(args)
     return run_agent(config.agent, config.fit)
 
 
 def cmd_sim(args) -> int:
     from services.sim.run import run_sim
 
-    return run_sim(_resolved(args))
+    return run_sim(resolve_config(args))
 
 
 def cmd_demo(args) -> int:

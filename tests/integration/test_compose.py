@@ -8,7 +8,7 @@ import subprocess
 import pytest
 import yaml
 
-from services.cli import build_parser
+from services.cli import build_parser, resolve_config
 from services.sim.fleet import SimSource
 from support.paths import ROOT
 
@@ -60,16 +60,20 @@ def test_every_command_parses_as_gmmap(compose):
     robots, sources = [], []
     for name, service in gmmap_services(compose).items():
         args = parser.parse_args(service["command"])
-        assert args.zenoh_connect == ["tcp/router:7447"], name
+        config = resolve_config(args)
         if args.command == "server":
-            host, port = args.http.split(":")
+            server = config.server
+            assert server.zenoh_connect == ("tcp/router:7447",) and server.listen == (), name
+            host, port = server.http.split(":")
             assert host == "0.0.0.0" and service["ports"] == [f"127.0.0.1:8000:{port}"]
-            assert args.data_dir in [v.split(":")[1] for v in service["volumes"]]
+            assert server.data_dir in [v.split(":")[1] for v in service["volumes"]]
         else:
-            sim = SimSource.parse(args.source)
-            assert args.scans.startswith("0:") and int(args.scans[2:]) > 0 and args.rate > 0
-            assert args.outbox.startswith(service["volumes"][0].split(":")[1])  # the outbox survives restarts
-            robots.append(args.robot)
+            agent = config.agent
+            assert agent.zenoh_connect == ("tcp/router:7447",), name
+            sim = SimSource.parse(agent.source)
+            assert agent.scans.startswith("0:") and int(agent.scans[2:]) > 0 and agent.rate > 0
+            assert agent.outbox.startswith(service["volumes"][0].split(":")[1])  # the outbox survives restarts
+            robots.append(agent.robot)
             sources.append(sim)
     assert len(set(robots)) == 3
     assert sorted(s.index for s in sources) == [0, 1, 2] and {(s.world, s.robots, s.seed) for s in sources} == {

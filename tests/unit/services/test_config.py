@@ -18,7 +18,7 @@ from services.zenoh_config import DEFAULT_ENDPOINT
 
 def resolved(*argv: str) -> GmmapConfig:
     """The configuration a `gmmap` command line resolves to."""
-    return cli._resolved(cli.build_parser().parse_args(list(argv)))
+    return cli.resolve_config(cli.build_parser().parse_args(list(argv)))
 
 
 def test_defaults_are_the_sections_own():
