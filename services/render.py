@@ -3,7 +3,8 @@
 What a map shows people is the classification of Eq. 12 (`occupancy_png`): free white, occupied
 black, unknown grey, where a cell is free for p <= (1 - sqrt(1 - 4 sigma^2)) / 2, occupied for
 p >= (1 + sqrt(1 - 4 sigma^2)) / 2 and unknown in the dead band between (and at p = 0.5, nothing
-seen). sigma^2 is the `variance` parameter, DEFAULT_VARIANCE (the paper's 0.06) unless given.
+seen). sigma^2 is the `variance` parameter, DEFAULT_VARIANCE unless given (0.21: thresholds 0.3 and
+0.7; gmm_core.occupancy says why).
 The continuous picture, grey = 1 - p (`probability_png`), stays for looking at the evidence itself;
 both draw p = 0.5 in the same mid grey.
 

@@ -254,7 +254,7 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
                 f"(the variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for "
                 f"p <= (1 - sqrt(1 - 4 sigma^2)) / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between "
                 f"and at 0.5 (nothing seen); a smaller sigma^2 widens that dead band. Default: the server's (the "
-                f"paper's {DEFAULT_VARIANCE} unless set)"
+                f"project's {DEFAULT_VARIANCE}, thresholds 0.3 and 0.7, unless set)"
             ),
             **_range(params.MIN_VARIANCE, params.MAX_VARIANCE),
         ),

@@ -26,12 +26,12 @@ def test_class_colours():
 
 
 def test_2d_classes_at_the_default_variance_north_up():
-    # sigma^2 = 0.06: thresholds (1 -+ sqrt(0.76)) / 2 = 0.0641, 0.9359.
-    assert DEFAULT_VARIANCE == 0.06
+    # sigma^2 = 0.21: thresholds (1 -+ sqrt(0.16)) / 2 = 0.3, 0.7.
+    assert DEFAULT_VARIANCE == 0.21
     prob = np.array(
         [
-            [0.0, 0.06, 0.07, 0.5],  # iy = 0, the southernmost row: the image's last
-            [0.93, 0.94, 1.0, 0.51],
+            [0.0, 0.29, 0.31, 0.5],  # iy = 0, the southernmost row: the image's last
+            [0.69, 0.71, 1.0, 0.51],
         ],
         dtype=np.float32,
     )
