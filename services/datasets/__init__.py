@@ -15,6 +15,7 @@ import numpy as np
 from .carmen import FLASER_LINE, count_carmen, match_by_timestamp, read_carmen
 from .common import DatasetError, RangeScan, read_text
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
+from .pcd import PCD_FILE, count_pcd, read_pcd
 from .xyz import read_xyz
 
 __all__ = [
@@ -28,15 +29,21 @@ __all__ = [
     "read_scans",
 ]
 
-FORMATS = ("carmen", "kurt3d", "xyz")
+FORMATS = ("carmen", "kurt3d", "xyz", "pcd")
 _CARMEN_SUFFIXES = {".log", ".clf"}
 
 
 def guess_format(path: str | Path) -> str:
-    """kurt3d for a directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with FLASER lines."""
+    """The format of a path.
+
+    pcd for NNN.pcd(.gz) or a directory of them; kurt3d for another directory or scanNNN.3d(.gz);
+    carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such file or directory: {path}")
+    if PCD_FILE.fullmatch(path.name) or (path.is_dir() and any(PCD_FILE.fullmatch(f.name) for f in path.iterdir())):
+        return "pcd"
     if path.is_dir() or SCAN_FILE.fullmatch(path.name):
         return "kurt3d"
     suffixes = path.suffixes[-2:]
@@ -54,7 +61,7 @@ def read_scans(
 
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
     fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
-    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz).
+    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd).
     Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
     """
     if not 0 < keep_fraction <= 1:
@@ -62,7 +69,7 @@ def read_scans(
     if not (isinstance(seed, (int, np.integer)) and seed >= 0):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     fmt = fmt or guess_format(path)
-    readers = {"carmen": read_carmen, "kurt3d": read_kurt3d, "xyz": read_xyz}
+    readers = {"carmen": read_carmen, "kurt3d": read_kurt3d, "xyz": read_xyz, "pcd": read_pcd}
     if fmt not in readers:
         raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
     scans = readers[fmt](path, **options)
@@ -80,6 +87,8 @@ def count_scans(path: str | Path, fmt: str | None = None, **options) -> int:
         return count_kurt3d(path, scans=options.get("scans"))
     if fmt == "xyz":
         return 1
+    if fmt == "pcd":
+        return count_pcd(path)
     raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
 
 

@@ -218,4 +218,4 @@ def test_corrupt_archive_and_missing_file(tmp_path):
     with pytest.raises(DatasetError, match="no scanNNN"):
         read_scans(tmp_path, fmt="kurt3d")
     with pytest.raises(ValueError, match="unknown format"):
-        read_scans(path, fmt="pcd")
+        read_scans(path, fmt="las")

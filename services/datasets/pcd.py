@@ -1,0 +1,202 @@
+"""PCD (Point Cloud Library) sequences: a directory of numbered `NNNNNN.pcd` or `.pcd.gz` files.
+
+Reads `DATA ascii`, `binary` and `binary_compressed` (LZF), any extra fields (only x y z are
+kept), organised or not; points with a non-finite coordinate are dropped. Points are in the
+sensor frame. PCD files carry no time: `index` and `stamp` are the file number NNNNNN.
+Without a poses file every scan's pose is the identity; with one (KITTI layout, see
+poses.read_kitti_poses) line k is the pose of scan file number k.
+"""
+
+from __future__ import annotations
+
+import gzip
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from gmm_core.pose import Pose
+
+from .common import DatasetError, RangeScan, split_points
+from .poses import read_poses
+
+PCD_FILE = re.compile(r"(\d+)\.pcd(\.gz)?")
+_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8"}
+_TYPES |= {("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
+
+
+@numba.njit(cache=True)
+def _lzf_decompress_into(src: np.ndarray, dst: np.ndarray) -> int:  # pragma: no cover - numba
+    """liblzf's decompressor; returns bytes written, or -1 on a corrupt stream."""
+    i = 0
+    o = 0
+    n, m = len(src), len(dst)
+    while i < n:
+        ctrl = src[i]
+        i += 1
+        if ctrl < 32:  # literal run of ctrl + 1 bytes
+            length = ctrl + 1
+            if i + length > n or o + length > m:
+                return -1
+            dst[o : o + length] = src[i : i + length]
+            i += length
+            o += length
+        else:  # back reference
+            length = ctrl >> 5
+            if length == 7:
+                if i >= n:
+                    return -1
+                length += src[i]
+                i += 1
+            if i >= n:
+                return -1
+            ref = o - ((ctrl & 0x1F) << 8) - 1 - src[i]
+            i += 1
+            length += 2
+            if ref < 0 or o + length > m:
+                return -1
+            for k in range(length):  # may overlap: byte by byte
+                dst[o + k] = dst[ref + k]
+            o += length
+    return o
+
+
+def lzf_decompress(data: bytes, size: int) -> bytes:
+    """LZF-decompress `data` to exactly `size` bytes; ValueError when the stream is corrupt."""
+    dst = np.empty(size, dtype=np.uint8)
+    got = _lzf_decompress_into(np.frombuffer(data, dtype=np.uint8), dst)
+    if got != size:
+        raise ValueError(f"corrupt LZF stream (decoded {got} of {size} bytes)")
+    return dst.tobytes()
+
+
+def _ascii_error(path: Path, rows: list[str], lineno: int, ncols: int) -> None:
+    """Raise the DatasetError naming the first bad data line (lineno: the DATA line's number)."""
+    for k, r in enumerate(rows):
+        try:
+            vals = [float(v) for v in r.split()]
+        except ValueError:
+            raise DatasetError(f"{path.name}:{lineno + 1 + k}: non-numeric field in {r.strip()!r}") from None
+        if len(vals) != ncols:
+            raise DatasetError(f"{path.name}:{lineno + 1 + k}: expected {ncols} numbers, found {len(vals)}")
+    raise DatasetError(f"{path.name}: numbers in a form numpy cannot read")
+
+
+def read_pcd_points(path: Path) -> np.ndarray:
+    """The (n, 3) float64 x y z of one PCD file, non-finite points dropped."""
+    raw = gzip.open(path).read() if path.suffix == ".gz" else path.read_bytes()
+    header: dict[str, list[str]] = {}
+    pos = 0
+    lineno = 0
+    while True:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise DatasetError(f"{path.name}: header has no DATA line")
+        lineno += 1
+        line = raw[pos:end].decode("latin-1").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            break
+    try:
+        fields = header["FIELDS"]
+        sizes = [int(s) for s in header["SIZE"]]
+        types = header["TYPE"]
+        counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+        width, height = int(header["WIDTH"][0]), int(header.get("HEIGHT", ["1"])[0])
+        npoints = int(header.get("POINTS", [str(width * height)])[0])
+        encoding = header["DATA"][0].lower()
+    except (KeyError, ValueError, IndexError) as e:
+        raise DatasetError(f"{path.name}: bad or missing header entry {e}") from None
+    if not (len(fields) == len(sizes) == len(types) == len(counts)):
+        raise DatasetError(f"{path.name}: FIELDS, SIZE, TYPE and COUNT differ in length")
+    if not {"x", "y", "z"} <= set(fields):
+        raise DatasetError(f"{path.name}: no x y z fields (has {fields})")
+    try:
+        dts = [np.dtype(_TYPES[(t.upper(), s)]) for t, s in zip(types, sizes)]
+    except KeyError:
+        raise DatasetError(f"{path.name}: unsupported TYPE/SIZE {types}/{sizes}") from None
+    names = [f if f != "_" else f"_pad{k}" for k, f in enumerate(fields)]
+    dtype = np.dtype([(n, d, (c,)) if c > 1 else (n, d) for n, d, c in zip(names, dts, counts)])
+    body = raw[pos:]
+    if encoding == "ascii":
+        text = body.decode("latin-1").split("\n")
+        rows = [r for r in text if r.strip()]
+        ncols = sum(counts)
+        try:
+            table = np.loadtxt(rows, dtype=np.float64, ndmin=2) if rows else np.empty((0, ncols))
+        except ValueError:
+            _ascii_error(path, rows, lineno, ncols)
+        if table.shape[1] != ncols:
+            raise DatasetError(f"{path.name}: expected {ncols} numbers a row, found {table.shape[1]}")
+        offsets = np.cumsum([0] + counts)
+        cols = [table[:, offsets[fields.index(a)]] for a in "xyz"]
+        points = np.column_stack(cols)
+    elif encoding == "binary":
+        if len(body) < npoints * dtype.itemsize:
+            raise DatasetError(f"{path.name}: truncated: {len(body)} bytes for {npoints} points")
+        rec = np.frombuffer(body, dtype=dtype, count=npoints)
+        points = np.column_stack([rec[a].astype(np.float64) for a in "xyz"])
+    elif encoding == "binary_compressed":
+        if len(body) < 8:
+            raise DatasetError(f"{path.name}: truncated binary_compressed header")
+        csize, usize = np.frombuffer(body[:8], dtype="<u4")
+        try:
+            data = lzf_decompress(body[8 : 8 + int(csize)], int(usize))
+        except ValueError as e:
+            raise DatasetError(f"{path.name}: {e}") from None
+        # column-major: each field's values for all points, one field after another
+        points = np.empty((npoints, 3))
+        off = 0
+        for n, d, c in zip(names, dts, counts):
+            nbytes = d.itemsize * c * npoints
+            if off + nbytes > len(data):
+                raise DatasetError(f"{path.name}: decompressed data too short for {npoints} points")
+            if n in ("x", "y", "z"):
+                points[:, "xyz".index(n)] = np.frombuffer(data, dtype=d, count=npoints, offset=off)
+            off += nbytes
+    else:
+        raise DatasetError(f"{path.name}: unknown DATA encoding {encoding!r}")
+    return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+
+
+def scan_files(path: Path, pattern: re.Pattern[str], what: str) -> list[tuple[int, Path]]:
+    """(file number, file) in number order, for a directory (or one file) of numbered scans."""
+    if not path.exists():
+        raise FileNotFoundError(f"{what}: no such file or directory: {path}")
+    found: dict[int, Path] = {}
+    for f in sorted(path.iterdir()) if path.is_dir() else [path]:
+        m = pattern.fullmatch(f.name)
+        if m:
+            if int(m[1]) in found:
+                raise DatasetError(f"{f.name}: scan {int(m[1])} exists twice ({found[int(m[1])].name})")
+            found[int(m[1])] = f
+    if not found:
+        raise DatasetError(f"{path}: no numbered {what} files")
+    return sorted(found.items())
+
+
+def count_pcd(path: str | Path) -> int:
+    return len(scan_files(Path(path), PCD_FILE, "pcd"))
+
+
+def read_numbered(
+    path: Path, files: list[tuple[int, Path]], read_points, poses: str | Path | None, min_range: float
+) -> Iterator[RangeScan]:
+    stamps = np.array([float(k) for k, _ in files])
+    pose_list = read_poses(Path(poses), [k for k, _ in files], stamps) if poses is not None else None
+    for i, (number, f) in enumerate(files):
+        hits, no_return = split_points(read_points(f), min_range, None)
+        pose = Pose.identity(3) if pose_list is None else pose_list[i]
+        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=None, hits=hits, no_return=no_return)
+
+
+def read_pcd(path: str | Path, *, poses: str | Path | None = None, min_range: float = 0.0) -> Iterator[RangeScan]:
+    """The scans of a directory of numbered .pcd(.gz) files (or one file), in number order."""
+    path = Path(path)
+    return read_numbered(path, scan_files(path, PCD_FILE, "pcd"), read_pcd_points, poses, min_range)
