@@ -92,6 +92,8 @@ def cmd_replay(args) -> int:
     options = {}
     if args.origin is not None:
         options["origin"] = tuple(args.origin)
+    if args.poses is not None:
+        options["poses"] = args.poses
     from tqdm import tqdm
 
     total = count_scans(args.log, args.format)
@@ -150,7 +152,7 @@ def cmd_inspect(args) -> int:
     from services.datasets import read_scans
     from services.replay import fit_scans, scan_message
 
-    scans = list(read_scans(args.log, args.format))
+    scans = list(read_scans(args.log, args.format, **({"poses": args.poses} if args.poses else {})))
     dim = scans[0].pose.dim if scans else 2
     config = resolve_config(args).fit.for_dimension(dim)
     start, bars = _progress_bars()
@@ -259,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="fit and reconstruct a log offline; write the map as npz and PNG")
     p.add_argument("log", help="CARMEN log, Kurt3D directory or xyz file")
-    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz"], default=None)
+    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz", "pcd"], default=None)
+    p.add_argument("--poses", default=None, help="pcd: poses file, KITTI (12 numbers a line) or TUM layout")
     p.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
     p.add_argument(
         "--bbox",
@@ -291,7 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("inspect", help="fit a log and report encoded bytes against the raw scans")
     p.add_argument("log")
-    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz"], default=None)
+    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz", "pcd"], default=None)
+    p.add_argument("--poses", default=None, help="pcd: poses file, KITTI (12 numbers a line) or TUM layout")
     p.add_argument("--encoding", choices=["q", "f32"], default="q")
     _fit_flags(p)
     p.add_argument("--json", action="store_true")

@@ -104,3 +104,18 @@ def test_tum_and_bad_poses(tmp_path):
     poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 0 0 1 0 0 0 0 1 0\n")
     with pytest.raises(DatasetError, match="kitti.txt:2|tum.txt:2: not a proper rotation"):
         list(read_scans(tmp_path, "pcd", poses=poses))
+
+
+def test_replay_three_balm_scans(tmp_path):
+    from services.cli import main
+
+    seq = tmp_path / "balm"
+    seq.mkdir()
+    for k in (0, 12, 24):
+        (seq / f"{k:06d}.pcd.gz").symlink_to(BALM / f"{k:06d}.pcd.gz")
+    out = tmp_path / "map.npz"
+    args = ["replay", str(seq), "--format", "pcd", "--poses", str(BALM / "poses.txt"), "--resolution", "0.5"]
+    assert main([*args, "--out", str(out)]) == 0
+    m = np.load(out)
+    occupied, free = (m["prob"] > 0.7).sum(), (m["prob"] < 0.3).sum()
+    assert occupied > 500 and free > occupied  # walls seen, and the space the beams crossed is free
