@@ -390,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PATH",
         help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates",
     )
+    _setting(p, "--poses", "agent.poses", metavar="FILE", help="pcd source: poses file, KITTI or TUM layout")
     _setting(p, "--scans", "agent.scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
     _setting(p, "--rate", "agent.rate", type=float, help="scans per second (0: as fast as fitted)")
     _setting(

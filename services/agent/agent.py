@@ -234,7 +234,7 @@ def run_agent(o: AgentConfig, fit: FitConfig = FitConfig()) -> int:
     print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit)}", file=sys.stderr, flush=True)
     if o.update_every is None:
         o = replace(o, update_every=default_update_every(o.source, o.rate))
-    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every)
+    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, poses=o.poses)
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
     outbox = Outbox(o.outbox or Path("gmmap-data") / f"outbox-{o.robot}.db", o.fleet, o.robot)

@@ -12,11 +12,14 @@ from services.zenoh_config import DEFAULT_ENDPOINT
 @dataclass(frozen=True)
 class AgentConfig:
     robot: str | None = None  # required to run: the robot's id, in its keys gmmap/<fleet>/<robot>/...
-    source: str | None = None  # required to run: carmen:PATH | kurt3d:DIR | xyz:PATH | sim:WORLD:INDEX:ROBOTS[:SEED]
+    source: str | None = (
+        None  # required to run: carmen:PATH | kurt3d:DIR | xyz:PATH | pcd:DIR | sim:WORLD:INDEX:ROBOTS[:SEED]
+    )
     fleet: str = "default"
     zenoh_connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)  # the router or server the agent (a client) reaches
     zenoh_config: str | None = None  # a Zenoh JSON5 file
     corrections: str | None = None  # corrected CARMEN log: odometry poses first, these as pose-graph updates
+    poses: str | None = None  # pcd source: poses file (KITTI or TUM layout); None: identity poses
     scans: str | None = None  # "A:B" slice of the (matched) scans; node ids stay global
     rate: float = 0.0  # scans per second; 0: as fast as they are fitted
     outbox: str | None = None  # durable outbox; None: ./gmmap-data/outbox-<robot>.db

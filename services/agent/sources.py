@@ -24,7 +24,7 @@ from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correcti
 
 LOG_UPDATE_EVERY = 100  # scans between pose-graph updates of a log with --corrections
 
-SOURCE_FORMATS = ("carmen", "kurt3d", "xyz")
+SOURCE_FORMATS = ("carmen", "kurt3d", "xyz", "pcd")
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,7 @@ def load_nodes(
     *,
     rate: float = 0.0,
     update_every: int | None = None,
+    poses: str | None = None,
 ) -> list[Node] | SimulatedNodes:
     """The nodes of a log (a list), or of a simulated robot (simulated as iterated)."""
     if is_simulated(source):
@@ -111,8 +112,9 @@ def load_nodes(
             update_every = default_update_every(source, rate)
         return simulated_nodes(source, scans, rate, update_every)
     fmt, path = parse_source(source)
+    options = {} if poses is None else {"poses": poses}
     if corrections is None:
-        nodes = [Node(s.index, s, s.pose, None) for s in read_scans(path, fmt)]
+        nodes = [Node(s.index, s, s.pose, None) for s in read_scans(path, fmt, **options)]
     else:
         pairs = match_by_timestamp(read_scans(path, fmt), read_scans(corrections))
         if not pairs:

@@ -119,3 +119,15 @@ def test_replay_three_balm_scans(tmp_path):
     m = np.load(out)
     occupied, free = (m["prob"] > 0.7).sum(), (m["prob"] < 0.3).sum()
     assert occupied > 500 and free > occupied  # walls seen, and the space the beams crossed is free
+
+
+def test_agent_pcd_source_with_poses(tmp_path):
+    from services.agent.sources import load_nodes, parse_source
+
+    for k in (0, 1):
+        PointCloud.from_xyz_points(np.ones((5, 3), np.float32)).save(tmp_path / f"{k:06d}.pcd")
+    (tmp_path / "p.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 7 0 1 0 0 0 0 1 0\n")
+    assert parse_source(f"pcd:{tmp_path}") == ("pcd", str(tmp_path))
+    nodes = load_nodes(f"pcd:{tmp_path}", poses=str(tmp_path / "p.txt"))
+    assert isinstance(nodes, list)
+    np.testing.assert_allclose(nodes[1].estimate.t, [7, 0, 0])
