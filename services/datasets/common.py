@@ -5,6 +5,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import io
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,18 +41,54 @@ class RangeScan:
                 raise ValueError(f"RangeScan.{name}: expected float64 (n, {d}), got {a.dtype} {a.shape}")
 
 
+_OPENERS = {".gz": gzip.open, ".bz2": bz2.open}  # decompression by suffix
+
+
 def read_text(path: Path) -> str:
     """The whole file as text, decompressed by suffix (.gz, .bz2).
 
     A missing file raises FileNotFoundError; a corrupt archive raises DatasetError.
     """
-    opener = {".gz": gzip.open, ".bz2": bz2.open}.get(path.suffix, open)
     # latin-1 decodes any byte, so stray bytes surface as a line-numbered parse error instead
-    with opener(path, "rt", encoding="latin-1") as f:
+    with _OPENERS.get(path.suffix, open)(path, "rt", encoding="latin-1") as f:
         try:
             return f.read()
         except (OSError, EOFError) as e:
             raise DatasetError(f"{path.name}: cannot read: {e}") from e
+
+
+def read_bytes(path: Path) -> bytes:
+    """The whole file as bytes, decompressed by suffix, with read_text's errors."""
+    with _OPENERS.get(path.suffix, open)(path, "rb") as f:
+        try:
+            return f.read()
+        except (OSError, EOFError) as e:
+            raise DatasetError(f"{path.name}: cannot read: {e}") from e
+
+
+def numbered_files(path: Path, pattern: re.Pattern[str], fmt: str, kind: str) -> dict[int, Path]:
+    """{number: file} of a directory (or the one file given) whose names `pattern` matches, the
+    number being its first group; `kind` describes the files in the error when there are none."""
+    if not path.exists():
+        raise FileNotFoundError(f"{fmt}: no such file or directory: {path}")
+    found: dict[int, Path] = {}
+    for f in sorted(path.iterdir()) if path.is_dir() else [path]:
+        m = pattern.fullmatch(f.name)
+        if m:
+            if int(m[1]) in found:
+                raise DatasetError(f"{f.name}: scan {int(m[1])} exists twice ({found[int(m[1])].name})")
+            found[int(m[1])] = f
+    if not found:
+        raise DatasetError(f"{path}: no {kind} files")
+    return found
+
+
+def proper_rotation(R: np.ndarray, where: str) -> np.ndarray:
+    """R snapped to the nearest rotation (files print few digits); DatasetError if it is none."""
+    if abs(np.linalg.det(R) - 1) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+        raise DatasetError(f"{where}: not a proper rotation: {R.tolist()}")
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
 
 
 def parse_rows(text: str, name: str, ncols: int) -> np.ndarray:

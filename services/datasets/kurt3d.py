@@ -28,7 +28,7 @@ import numpy as np
 
 from gmm_core.pose import Pose
 
-from .common import DatasetError, RangeScan, parse_rows, read_text, split_points
+from .common import DatasetError, RangeScan, numbered_files, parse_rows, proper_rotation, read_text, split_points
 
 LH_TO_RH = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 CM = 0.01
@@ -41,18 +41,7 @@ SCAN_FILE = re.compile(r"scan(\d+)\.3d(\.gz)?")
 
 def _scan_files(path: Path, scans: Iterable[int] | None) -> list[tuple[int, Path]]:
     """(scan number, point file) in scan order: every scan of a directory, or the one file given."""
-    if not path.exists():
-        raise FileNotFoundError(f"kurt3d: no such file or directory: {path}")
-    candidates = sorted(path.iterdir()) if path.is_dir() else [path]
-    found: dict[int, Path] = {}
-    for f in candidates:
-        m = SCAN_FILE.fullmatch(f.name)
-        if m:
-            if int(m[1]) in found:
-                raise DatasetError(f"{f.name}: scan {int(m[1])} exists twice ({found[int(m[1])].name})")
-            found[int(m[1])] = f
-    if not found:
-        raise DatasetError(f"{path}: no scanNNN.3d or scanNNN.3d.gz files")
+    found = numbered_files(path, SCAN_FILE, "kurt3d", "scanNNN.3d or scanNNN.3d.gz")
     wanted = sorted(found) if scans is None else list(scans)
     missing = [i for i in wanted if i not in found]
     if missing:
@@ -66,10 +55,7 @@ def count_kurt3d(path: str | Path, *, scans: Iterable[int] | None = None) -> int
 
 def _to_right_handed(R_lh: np.ndarray, t_lh_cm: np.ndarray, where: str) -> Pose:
     """A left-handed centimetre pose as a right-handed metre Pose; R_lh must be a rotation."""
-    if abs(np.linalg.det(R_lh) - 1) > 1e-3 or not np.allclose(R_lh @ R_lh.T, np.eye(3), atol=1e-3):
-        raise DatasetError(f"{where}: not a proper rotation: {R_lh.tolist()}")
-    U, _, Vt = np.linalg.svd(R_lh)  # the files print 6 digits: snap to the nearest rotation
-    return Pose(LH_TO_RH @ (U @ Vt) @ LH_TO_RH.T, LH_TO_RH @ t_lh_cm * CM)
+    return Pose(LH_TO_RH @ proper_rotation(R_lh, where) @ LH_TO_RH.T, LH_TO_RH @ t_lh_cm * CM)
 
 
 def _registered_pose(frames: Path) -> Pose:

@@ -9,7 +9,6 @@ poses.read_kitti_poses) line k is the pose of scan file number k.
 
 from __future__ import annotations
 
-import gzip
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 
 from gmm_core.pose import Pose
 
-from .common import DatasetError, RangeScan, split_points
+from .common import DatasetError, RangeScan, numbered_files, read_bytes, split_points
 from .poses import read_poses
 
 PCD_FILE = re.compile(r"(\d+)\.pcd(\.gz)?")
@@ -86,7 +85,7 @@ def _ascii_error(path: Path, rows: list[str], lineno: int, ncols: int) -> None:
 
 def read_pcd_points(path: Path) -> np.ndarray:
     """The (n, 3) float64 x y z of one PCD file, non-finite points dropped."""
-    raw = gzip.open(path).read() if path.suffix == ".gz" else path.read_bytes()
+    raw = read_bytes(path)
     header: dict[str, list[str]] = {}
     pos = 0
     lineno = 0
@@ -165,38 +164,20 @@ def read_pcd_points(path: Path) -> np.ndarray:
     return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
 
 
-def scan_files(path: Path, pattern: re.Pattern[str], what: str) -> list[tuple[int, Path]]:
-    """(file number, file) in number order, for a directory (or one file) of numbered scans."""
-    if not path.exists():
-        raise FileNotFoundError(f"{what}: no such file or directory: {path}")
-    found: dict[int, Path] = {}
-    for f in sorted(path.iterdir()) if path.is_dir() else [path]:
-        m = pattern.fullmatch(f.name)
-        if m:
-            if int(m[1]) in found:
-                raise DatasetError(f"{f.name}: scan {int(m[1])} exists twice ({found[int(m[1])].name})")
-            found[int(m[1])] = f
-    if not found:
-        raise DatasetError(f"{path}: no numbered {what} files")
-    return sorted(found.items())
+def _pcd_files(path: Path) -> list[tuple[int, Path]]:
+    return sorted(numbered_files(path, PCD_FILE, "pcd", "numbered pcd").items())
 
 
 def count_pcd(path: str | Path) -> int:
-    return len(scan_files(Path(path), PCD_FILE, "pcd"))
-
-
-def read_numbered(
-    path: Path, files: list[tuple[int, Path]], read_points, poses: str | Path | None, min_range: float
-) -> Iterator[RangeScan]:
-    stamps = np.array([float(k) for k, _ in files])
-    pose_list = read_poses(Path(poses), [k for k, _ in files], stamps) if poses is not None else None
-    for i, (number, f) in enumerate(files):
-        hits, no_return = split_points(read_points(f), min_range, None)
-        pose = Pose.identity(3) if pose_list is None else pose_list[i]
-        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=None, hits=hits, no_return=no_return)
+    return len(_pcd_files(Path(path)))
 
 
 def read_pcd(path: str | Path, *, poses: str | Path | None = None, min_range: float = 0.0) -> Iterator[RangeScan]:
     """The scans of a directory of numbered .pcd(.gz) files (or one file), in number order."""
-    path = Path(path)
-    return read_numbered(path, scan_files(path, PCD_FILE, "pcd"), read_pcd_points, poses, min_range)
+    files = _pcd_files(Path(path))
+    stamps = np.array([float(k) for k, _ in files])
+    pose_list = read_poses(Path(poses), [k for k, _ in files], stamps) if poses is not None else None
+    for i, (number, f) in enumerate(files):
+        hits, no_return = split_points(read_pcd_points(f), min_range, None)
+        pose = Pose.identity(3) if pose_list is None else pose_list[i]
+        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=None, hits=hits, no_return=no_return)

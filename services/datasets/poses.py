@@ -14,14 +14,7 @@ import numpy as np
 
 from gmm_core.pose import Pose
 
-from .common import DatasetError, parse_rows, read_text
-
-
-def _rotation(R: np.ndarray, where: str) -> np.ndarray:
-    if abs(np.linalg.det(R) - 1) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
-        raise DatasetError(f"{where}: not a proper rotation: {R.tolist()}")
-    U, _, Vt = np.linalg.svd(R)  # files print few digits: snap to the nearest rotation
-    return U @ Vt
+from .common import DatasetError, parse_rows, proper_rotation, read_text
 
 
 def read_poses(path: Path, numbers: list[int], stamps: np.ndarray) -> list[Pose]:
@@ -38,7 +31,7 @@ def read_poses(path: Path, numbers: list[int], stamps: np.ndarray) -> list[Pose]
             if n >= len(rows):
                 raise DatasetError(f"{path.name}: {len(rows)} poses, no line for scan {n}")
             M = rows[n].reshape(3, 4)
-            out.append(Pose(_rotation(M[:, :3], f"{path.name}:{lines[n]}"), M[:, 3].copy()))
+            out.append(Pose(proper_rotation(M[:, :3], f"{path.name}:{lines[n]}"), M[:, 3].copy()))
         return out
     if len(first) == 8:
         rows = parse_rows(text, path.name, 8)
