@@ -23,14 +23,23 @@ def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PR
     return ((hits + prior) / (hits + misses + 2 * prior)).astype(np.float32)
 
 
+MIN_VARIANCE, MAX_VARIANCE = 0.0, 0.25  # sigma^2 = p (1 - p) of Eq. 12 lies in [0, 1/4]
+
+
+def check_variance(variance: float, field: str = "variance") -> float:
+    """`variance` if it is a sigma^2 of Eq. 12, in [MIN_VARIANCE, MAX_VARIANCE]; else a ValueError naming `field`."""
+    if not MIN_VARIANCE <= variance <= MAX_VARIANCE:
+        raise ValueError(f"{field}: sigma^2 must lie in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}], got {variance}")
+    return variance
+
+
 def classify(prob: np.ndarray, variance: float) -> np.ndarray:
     """OCCUPIED / FREE / UNKNOWN by the thresholds (1 ± sqrt(1 - 4 sigma^2)) / 2 of Eq. 12.
 
     A cell whose Bernoulli variance p(1 - p) exceeds `variance` stays UNKNOWN, and so does
     p = 0.5, the prior, whatever the band.
     """
-    if not 0.0 <= variance <= 0.25:
-        raise ValueError(f"variance: sigma^2 must lie in [0, 0.25], got {variance}")
+    check_variance(variance)
     half_band = 0.5 * np.sqrt(1.0 - 4.0 * variance)
     out = np.full(np.shape(prob), UNKNOWN, dtype=np.int8)
     out[(prob >= 0.5 + half_band) & (prob > 0.5)] = OCCUPIED

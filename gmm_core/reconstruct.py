@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmm_core.grid import Grid
-from gmm_core.occupancy import DEFAULT_PRIOR, DEFAULT_VARIANCE
+from gmm_core.occupancy import DEFAULT_PRIOR, DEFAULT_VARIANCE, check_variance
 from gmm_core.pose import Pose
 from gmm_core.raytrace import trace_rays
 from gmm_core.sampling import scan_rays
@@ -34,8 +34,9 @@ class ReconstructionConfig:
     def __post_init__(self):
         require_number("reconstruction.samples_per_cell", self.samples_per_cell, positive=True)
         require_number("reconstruction.prior", self.prior, positive=True)
-        if not 0.0 <= require_number("reconstruction.variance", self.variance, positive=False) <= 0.25:
-            raise ValueError(f"reconstruction.variance: sigma^2 of Eq. 12 must lie in [0, 0.25], got {self.variance}")
+        check_variance(
+            require_number("reconstruction.variance", self.variance, positive=False), "reconstruction.variance"
+        )
 
 
 def trace_groups(

@@ -12,6 +12,7 @@ import re
 import numpy as np
 
 from gmm_core import Grid
+from gmm_core.occupancy import MAX_VARIANCE, MIN_VARIANCE
 from protocol import ProtocolError, check_id
 
 MIN_RESOLUTION = 0.005  # metres
@@ -19,7 +20,6 @@ MAX_RESOLUTION = 10.0
 MAX_CELLS = 16_000_000  # per occupancy request
 MAX_POINTS = 10_000  # per point request
 MAX_COORDINATE = 1e9  # metres from the world origin, for points
-MIN_VARIANCE, MAX_VARIANCE = 0.0, 0.25  # sigma^2 = p (1 - p) of Eq. 12 lies in [0, 1/4]
 
 # The text formats, stated once: the parsers below accept exactly these (float() alone would also
 # take "1_0" or non-ASCII digits), and the OpenAPI schema publishes them as patterns. Blanks are
