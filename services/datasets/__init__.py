@@ -6,8 +6,9 @@ frame, plus the sensor pose in the log's map frame. `read_scans` picks the reade
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from dataclasses import replace
+import inspect
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,8 @@ from .xyz import read_xyz
 __all__ = [
     "DatasetError",
     "FORMATS",
+    "READERS",
+    "Reader",
     "RangeScan",
     "count_scans",
     "guess_format",
@@ -29,7 +32,29 @@ __all__ = [
     "read_scans",
 ]
 
-FORMATS = ("carmen", "kurt3d", "xyz", "pcd")
+
+@dataclass(frozen=True)
+class Reader:
+    """One format: `read(path, **options)` yields RangeScans; `count(path, **options)` says how
+    many without parsing them (for a progress bar)."""
+
+    read: Callable[..., Iterator[RangeScan]]
+    count: Callable[..., int]
+
+    @property
+    def options(self) -> list[str]:
+        """The keywords `read` takes."""
+        params = inspect.signature(self.read).parameters.values()
+        return sorted(p.name for p in params if p.kind is p.KEYWORD_ONLY)
+
+
+READERS = {
+    "carmen": Reader(read_carmen, lambda path, **_: count_carmen(path)),
+    "kurt3d": Reader(read_kurt3d, lambda path, scans=None, **_: count_kurt3d(path, scans=scans)),
+    "xyz": Reader(read_xyz, lambda path, **_: 1),
+    "pcd": Reader(read_pcd, lambda path, **_: count_pcd(path)),
+}
+FORMATS = tuple(READERS)
 _CARMEN_SUFFIXES = {".log", ".clf"}
 
 
@@ -69,10 +94,7 @@ def read_scans(
     if not (isinstance(seed, (int, np.integer)) and seed >= 0):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     fmt = fmt or guess_format(path)
-    readers = {"carmen": read_carmen, "kurt3d": read_kurt3d, "xyz": read_xyz, "pcd": read_pcd}
-    if fmt not in readers:
-        raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
-    scans = readers[fmt](path, **options)
+    scans = _reader(fmt, options).read(path, **options)
     if keep_fraction == 1:
         return scans
     return (keep_beams(scan, keep_fraction, seed) for scan in scans)
@@ -81,15 +103,19 @@ def read_scans(
 def count_scans(path: str | Path, fmt: str | None = None, **options) -> int:
     """How many scans read_scans will yield (for a progress bar), without parsing the ranges."""
     fmt = fmt or guess_format(path)
-    if fmt == "carmen":
-        return count_carmen(path)
-    if fmt == "kurt3d":
-        return count_kurt3d(path, scans=options.get("scans"))
-    if fmt == "xyz":
-        return 1
-    if fmt == "pcd":
-        return count_pcd(path)
-    raise ValueError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    return _reader(fmt, options).count(path, **options)
+
+
+def _reader(fmt: str, options: dict) -> Reader:
+    """The reader of `fmt`; a ValueError names an unknown format or an option it does not take."""
+    if fmt not in READERS:
+        raise ValueError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
+    reader = READERS[fmt]
+    unknown = sorted(set(options) - set(reader.options))
+    if unknown:
+        flags = ", ".join("--" + name.replace("_", "-") for name in unknown)
+        raise ValueError(f"{flags}: not an option of the {fmt} format (it takes {', '.join(reader.options) or 'none'})")
+    return reader
 
 
 def keep_beams(scan: RangeScan, keep_fraction: float, seed: int) -> RangeScan:
