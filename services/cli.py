@@ -8,59 +8,19 @@ import time
 
 import numpy as np
 
-from services.config import GmmapConfig, load_config
+from services.cli_flags import (
+    config_flag,
+    fit_flags,
+    keyframe_flags,
+    reconstruction_flags,
+    resolve_config,
+    setting,
+    source_flags,
+    source_options,
+)
+from services.config import GmmapConfig
 from services.sim.world_names import WORLD_NAMES
 from services.zenoh_config import DEFAULT_ENDPOINT
-
-DEFAULTS = GmmapConfig()
-
-
-def _setting(p: argparse.ArgumentParser, flag: str, key: str, **kwargs) -> None:
-    """A flag that sets field `key` ("section.field") of the configuration; its default is the
-    section's own, shown in the help, and applies only when neither the flag nor --config sets it."""
-    section, name = key.split(".")
-    default = getattr(getattr(DEFAULTS, section), name)
-    if kwargs.get("action") != "store_true":
-        kwargs.setdefault("metavar", None if "choices" in kwargs else flag.lstrip("-").upper().replace("-", "_"))
-        if kwargs.get("action") != "append" and default is not None:
-            kwargs["help"] = f"{kwargs.get('help', '')} (default {default})".strip()
-    p.add_argument(flag, dest=key, default=argparse.SUPPRESS, **kwargs)
-
-
-def _config_flag(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--config",
-        metavar="FILE",
-        default=None,
-        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim] settings; "
-        "flags given here win over it",
-    )
-
-
-def _fit_flags(p: argparse.ArgumentParser) -> None:
-    _setting(p, "--max-range", "fit.max_range", type=float, help="where no-return beams end, m")
-    _setting(
-        p, "--points-per-component", "fit.points_per_component", type=float, help="about this many points per component"
-    )
-    _setting(
-        p,
-        "--component-size",
-        "fit.component_size",
-        type=float,
-        metavar="M",
-        help="at most one component per occupied cell of this size, m (default: none in 2D, 1.0 in 3D)",
-    )
-    _setting(p, "--max-components", "fit.max_components", type=int, metavar="K", help="per mixture")
-
-
-def resolve_config(args) -> GmmapConfig:
-    """--config, then the flags that were given, over the defaults."""
-    overrides: dict[str, dict] = {}
-    for key, value in vars(args).items():
-        if "." in key:
-            section, name = key.split(".")
-            overrides.setdefault(section, {})[name] = value
-    return load_config(args.config, overrides)
 
 
 def _floats(text: str) -> list[float]:
@@ -83,32 +43,39 @@ def _progress_bars():
     return start, bars
 
 
-def cmd_replay(args) -> int:
+def _read_source(args, config: GmmapConfig, keep_fraction: float = 1.0, seed: int = 0, **options) -> tuple[list, int]:
+    """The scans of the source that the keyframe policy keeps, and how many were read."""
+    from tqdm import tqdm
+
     from services.datasets import count_scans, read_scans
+    from services.datasets.keyframes import keyframes
+
+    options |= source_options(args)
+    read = 0
+    total = count_scans(args.log, args.format, **options)
+    with tqdm(total=total, desc="read", unit="scan", file=sys.stderr, leave=False) as bar:
+
+        def counted(scans):
+            nonlocal read
+            for scan in scans:
+                read += 1
+                bar.update(1)
+                yield scan
+
+        scans = counted(read_scans(args.log, args.format, keep_fraction=keep_fraction, seed=seed, **options))
+        kept = list(keyframes(scans, config.keyframe, lambda s: (s.pose, s.stamp)))
+    return kept, read
+
+
+def cmd_replay(args) -> int:
     from services.render import occupancy_png
     from services.replay import replay
 
     t0 = time.perf_counter()
-    options = {}
-    if args.origin is not None:
-        options["origin"] = tuple(args.origin)
-    if args.poses is not None:
-        options["poses"] = args.poses
-    from tqdm import tqdm
-
-    total = count_scans(args.log, args.format)
-    scans = list(
-        tqdm(
-            read_scans(args.log, args.format, keep_fraction=args.keep_fraction, seed=args.seed, **options),
-            total=total,
-            desc="read",
-            unit="scan",
-            file=sys.stderr,
-            leave=False,
-        )
-    )
-    start, bars = _progress_bars()
     config = resolve_config(args)
+    options = {} if args.origin is None else {"origin": tuple(args.origin)}
+    scans, read = _read_source(args, config, args.keep_fraction, args.seed, **options)
+    start, bars = _progress_bars()
     result = replay(
         scans,
         resolution=args.resolution,
@@ -137,7 +104,8 @@ def cmd_replay(args) -> int:
             f.write(occupancy_png(result.prob, config.reconstruction.variance))
     view = " (top-down projection)" if g.dim == 3 else ""
     print(
-        f"{result.scans} scans, {result.components} components, grid {'x'.join(map(str, g.shape))} "
+        f"{result.scans} scans (keyframes of {read} read), {result.components} components, "
+        f"grid {'x'.join(map(str, g.shape))} "
         f"at {g.resolution} m from {np.round(g.origin, 3).tolist()}, {time.perf_counter() - t0:.1f} s"
         + (f"; wrote {args.out}" if args.out else "")
         + (f"; wrote {args.png}{view}" if args.png else "")
@@ -149,12 +117,12 @@ def cmd_inspect(args) -> int:
     import json
 
     from protocol import encode
-    from services.datasets import read_scans
     from services.replay import fit_scans, scan_message
 
-    scans = list(read_scans(args.log, args.format, **({"poses": args.poses} if args.poses else {})))
+    settings = resolve_config(args)
+    scans, read = _read_source(args, settings)
     dim = scans[0].pose.dim if scans else 2
-    config = resolve_config(args).fit.for_dimension(dim)
+    config = settings.fit.for_dimension(dim)
     start, bars = _progress_bars()
     models = fit_scans(scans, config, start("fit", len(scans)))
     for bar in bars:
@@ -164,7 +132,8 @@ def cmd_inspect(args) -> int:
     raw = [4 * (len(s.hits) + len(s.no_return)) * (1 if dim == 2 else 3) for s in scans]
     components = sum(m.n_components for m in models)
     report = {
-        "scans": len(scans),
+        "scans": len(scans),  # after keyframing
+        "scans_read": read,
         "dimension": dim,
         "encoding": args.encoding,
         "components": components,
@@ -213,7 +182,7 @@ def cmd_agent(args) -> int:
 
     _logging(args.verbose)
     config = resolve_config(args)
-    return run_agent(config.agent, config.fit)
+    return run_agent(config.agent, config.fit, config.keyframe)
 
 
 def cmd_sim(args) -> int:
@@ -226,24 +195,6 @@ def cmd_demo(args) -> int:
     from services.sim.demo import run_demo
 
     return run_demo(args.http, args.duration)
-
-
-def _reconstruction_flags(p: argparse.ArgumentParser) -> None:
-    _setting(
-        p,
-        "--samples-per-cell",
-        "reconstruction.samples_per_cell",
-        type=float,
-        help="Monte-Carlo samples per cell of the queried resolution",
-    )
-    _setting(p, "--prior", "reconstruction.prior", type=float, help="N_p of Eq. 11")
-    _setting(
-        p,
-        "--variance",
-        "reconstruction.variance",
-        type=float,
-        help="sigma^2 of Eq. 12: PNGs show free / occupied / unknown by its dead band",
-    )
 
 
 def _fleet_id(text: str) -> str:
@@ -260,9 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("replay", help="fit and reconstruct a log offline; write the map as npz and PNG")
-    p.add_argument("log", help="CARMEN log, Kurt3D directory or xyz file")
-    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz", "pcd"], default=None)
-    p.add_argument("--poses", default=None, help="pcd: poses file, KITTI (12 numbers a line) or TUM layout")
+    source_flags(p)
+    keyframe_flags(p)
     p.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
     p.add_argument(
         "--bbox",
@@ -278,8 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
         default="mc",
         help="mc: Monte Carlo (Eq. 11); analytic: per-cell evidence, Eq. 5/10 (2D); raw: counting grid",
     )
-    _fit_flags(p)
-    _reconstruction_flags(p)
+    fit_flags(p)
+    reconstruction_flags(p)
     p.add_argument("--origin", type=_floats, default=None, help="sensor origin x,y,z of an xyz file")
     p.add_argument(
         "--encoding",
@@ -289,22 +239,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", default=None, help="map.npz")
     p.add_argument("--png", default=None, help="map.png")
-    _config_flag(p)
+    config_flag(p)
     p.set_defaults(run=cmd_replay)
 
     p = sub.add_parser("inspect", help="fit a log and report encoded bytes against the raw scans")
-    p.add_argument("log")
-    p.add_argument("--format", choices=["carmen", "kurt3d", "xyz", "pcd"], default=None)
-    p.add_argument("--poses", default=None, help="pcd: poses file, KITTI (12 numbers a line) or TUM layout")
+    source_flags(p)
+    keyframe_flags(p)
     p.add_argument("--encoding", choices=["q", "f32"], default="q")
-    _fit_flags(p)
+    fit_flags(p)
     p.add_argument("--json", action="store_true")
-    _config_flag(p)
+    config_flag(p)
     p.set_defaults(run=cmd_inspect)
 
     p = sub.add_parser("server", help="map server: Zenoh ingest and queryable, SQLite store, HTTP API")
-    _setting(p, "--fleet", "server.fleet", type=_fleet_id)
-    _setting(
+    setting(p, "--fleet", "server.fleet", type=_fleet_id)
+    setting(
         p,
         "--zenoh-listen",
         "server.zenoh_listen",
@@ -312,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="EP",
         help=f"endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT}, none with --zenoh-connect)",
     )
-    _setting(
+    setting(
         p,
         "--zenoh-connect",
         "server.zenoh_connect",
@@ -320,23 +269,23 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="EP",
         help="router or peer to connect to (repeatable)",
     )
-    _setting(
+    setting(
         p,
         "--zenoh-config",
         "server.zenoh_config",
         metavar="FILE.json5",
         help="Zenoh config file (scouting stays off unless it says so)",
     )
-    _setting(p, "--http", "server.http", metavar="HOST:PORT", help="HTTP address; '' for none")
-    _setting(p, "--data-dir", "server.data_dir")
-    _setting(
+    setting(p, "--http", "server.http", metavar="HOST:PORT", help="HTTP address; '' for none")
+    setting(p, "--data-dir", "server.data_dir")
+    setting(
         p,
         "--synchronous",
         "server.synchronous",
         choices=["normal", "full"],
         help="SQLite fsync policy: normal survives a crash of the process, full also power loss",
     )
-    _setting(
+    setting(
         p,
         "--robot-quota-mb",
         "server.robot_quota_mb",
@@ -344,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MIB",
         help="stored scan bytes per robot; scans beyond are refused with a Rejection (0: no quota)",
     )
-    _setting(
+    setting(
         p,
         "--trace-threads",
         "server.trace_threads",
@@ -352,8 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="tracer threads that sample and trace tiles; a large update is split among them (default: one per core)",
     )
-    _reconstruction_flags(p)
-    _config_flag(p)
+    reconstruction_flags(p)
+    config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_server)
 
@@ -365,9 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_router)
 
     p = sub.add_parser("agent", help="robot agent: fit scans, publish them and pose-graph updates until acknowledged")
-    _setting(p, "--robot", "agent.robot", type=_fleet_id, help="required, here or in --config")
-    _setting(p, "--fleet", "agent.fleet", type=_fleet_id)
-    _setting(
+    setting(p, "--robot", "agent.robot", type=_fleet_id, help="required, here or in --config")
+    setting(p, "--fleet", "agent.fleet", type=_fleet_id)
+    setting(
         p,
         "--zenoh-connect",
         "agent.zenoh_connect",
@@ -375,29 +324,33 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="EP",
         help=f"default {DEFAULT_ENDPOINT} (repeatable)",
     )
-    _setting(p, "--zenoh-config", "agent.zenoh_config", metavar="FILE.json5")
-    _setting(
+    setting(p, "--zenoh-config", "agent.zenoh_config", metavar="FILE.json5")
+    setting(
         p,
         "--source",
         "agent.source",
-        metavar="carmen:PATH|kurt3d:DIR|xyz:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
-        help="a log, or robot INDEX of a simulated fleet (needs --scans A:B); required, here or in --config",
+        metavar="FORMAT:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
+        help="a log (FORMAT: carmen, kurt3d, xyz, pcd, ply, kitti or rosbag; guessed when left out), or robot INDEX "
+        "of a simulated fleet (needs --scans A:B); required, here or in --config",
     )
-    _setting(
+    setting(
         p,
         "--corrections",
         "agent.corrections",
         metavar="PATH",
         help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates",
     )
-    _setting(p, "--poses", "agent.poses", metavar="FILE", help="pcd source: poses file, KITTI or TUM layout")
-    _setting(p, "--scans", "agent.scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
-    _setting(p, "--rate", "agent.rate", type=float, help="scans per second (0: as fast as fitted)")
-    _setting(
+    setting(p, "--poses", "agent.poses", metavar="FILE", help="pcd, ply, kitti source: poses file, KITTI or TUM layout")
+    setting(p, "--scan-topic", "agent.scan_topic", metavar="T", help="rosbag source: LaserScan or PointCloud2 topic")
+    setting(p, "--pose-topic", "agent.pose_topic", metavar="T", help="rosbag source: Odometry or PoseStamped topic")
+    keyframe_flags(p)
+    setting(p, "--scans", "agent.scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
+    setting(p, "--rate", "agent.rate", type=float, help="scans per second (0: as fast as fitted)")
+    setting(
         p, "--outbox", "agent.outbox", metavar="PATH", help="durable outbox (default ./gmmap-data/outbox-<robot>.db)"
     )
-    _setting(p, "--encoding", "agent.encoding", choices=["q", "f32"])
-    _setting(
+    setting(p, "--encoding", "agent.encoding", choices=["q", "f32"])
+    setting(
         p,
         "--update-every",
         "agent.update_every",
@@ -406,15 +359,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="scans between pose-graph updates (0: only at the end; default 100, "
         "or a sim source's loop-closure period of 10 s)",
     )
-    _setting(
+    setting(
         p,
         "--odometry-only",
         "agent.odometry_only",
         action="store_true",
         help="with --corrections: publish the matched scans but no pose-graph updates",
     )
-    _fit_flags(p)
-    _setting(
+    fit_flags(p)
+    setting(
         p,
         "--resend",
         "agent.resend_s",
@@ -423,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="resend what is unacknowledged after at least S s (longer when Acks come slowly, "
         "doubling with each resend)",
     )
-    _setting(
+    setting(
         p,
         "--timeout",
         "agent.timeout",
@@ -431,17 +384,17 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)",
     )
-    _config_flag(p)
+    config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_agent)
 
     p = sub.add_parser("sim", help="a simulated fleet over real Zenoh: bytes, map AUROC vs ground truth, latencies")
-    _setting(p, "--robots", "sim.robots", type=int, help="robots in the fleet, each a full agent")
-    _setting(p, "--world", "sim.world", choices=WORLD_NAMES, help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
-    _setting(p, "--duration", "sim.duration", type=float, help="seconds each robot drives and publishes")
-    _setting(p, "--rate", "sim.rate", type=float, help="scans per second per robot")
-    _setting(p, "--seed", "sim.seed", type=int, help="world, paths, odometry and sensor noise")
-    _setting(
+    setting(p, "--robots", "sim.robots", type=int, help="robots in the fleet, each a full agent")
+    setting(p, "--world", "sim.world", choices=WORLD_NAMES, help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
+    setting(p, "--duration", "sim.duration", type=float, help="seconds each robot drives and publishes")
+    setting(p, "--rate", "sim.rate", type=float, help="scans per second per robot")
+    setting(p, "--seed", "sim.seed", type=int, help="world, paths, odometry and sensor noise")
+    setting(
         p,
         "--http-clients",
         "sim.http_clients",
@@ -449,10 +402,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="concurrent HTTP clients fetching map tiles meanwhile",
     )
-    _setting(p, "--report", "sim.report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
-    _fit_flags(p)  # the robots' fit
-    _reconstruction_flags(p)  # the server's
-    _config_flag(p)
+    setting(p, "--report", "sim.report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
+    fit_flags(p)  # the robots' fit
+    reconstruction_flags(p)  # the server's
+    config_flag(p)
     p.set_defaults(run=cmd_sim)
 
     p = sub.add_parser(

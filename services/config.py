@@ -2,7 +2,8 @@
 
 Each section is a frozen dataclass owned by its layer, which documents the units and validates
 the values (`fit`: gmm_core.FitConfig, `reconstruction`: gmm_core.reconstruct.ReconstructionConfig,
-`server`, `agent`, `sim`: services/*/config.py). Defaults live there once; a config file
+`keyframe`: services.datasets.keyframes.KeyframeConfig, `server`, `agent`, `sim`:
+services/*/config.py). Defaults live there once; a config file
 (TOML or YAML, `--config FILE`), command-line flags and the Python API all resolve to a
 `GmmapConfig`, in that order of precedence: defaults < file < flags. A bad value is a
 `ConfigError` that names its field, e.g. `fit.max_range: must be a finite number > 0`.
@@ -23,6 +24,7 @@ from typing import Any
 from gmm_core import FitConfig
 from gmm_core.reconstruct import ReconstructionConfig
 from services.agent.config import AgentConfig
+from services.datasets.keyframes import KeyframeConfig
 from services.map_server.config import ServerConfig
 from services.sim.config import SimConfig
 
@@ -35,6 +37,7 @@ class ConfigError(ValueError):
 class GmmapConfig:
     fit: FitConfig = field(default_factory=FitConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     sim: SimConfig = field(default_factory=SimConfig)

@@ -15,13 +15,13 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
-from pathlib import Path
 
+import numpy as np
 import zenoh
 
-from gmm_core import FitConfig, fit_scan
+from gmm_core import FitConfig, Pose, fit_scan
 from protocol import (
     Ack,
     PoseGraphUpdate,
@@ -34,7 +34,8 @@ from protocol import (
     poses_key,
     scan_key,
 )
-from services.config import summary
+from services.config import GmmapConfig, summary
+from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
 from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
@@ -45,10 +46,19 @@ log = logging.getLogger("gmmap.agent")
 
 
 class Agent:
-    def __init__(self, options: AgentConfig, outbox: Outbox, config: zenoh.Config, fit: FitConfig = FitConfig()):
+    def __init__(
+        self,
+        options: AgentConfig,
+        outbox: Outbox,
+        config: zenoh.Config,
+        fit: FitConfig = FitConfig(),
+        keyframe: KeyframeConfig = KeyframeConfig(),
+    ):
         self.options = options
         self.fit = fit
         self.outbox = outbox
+        self._owns_outbox = False  # Agent.open made it, so close closes it
+        self._keyframes = KeyframeFilter(keyframe)
         self.session: zenoh.Session | None = None  # set once connected
         self._ack_subscriber = None
         self._send_lock = threading.Lock()  # one publisher at a time keeps scans before updates
@@ -56,7 +66,8 @@ class Agent:
         self._changed = threading.Condition()
         self.refused: Rejection | None = None  # the server's last refusal for good, if any
         self.unsent = 0  # scans not published because of a refusal
-        self.resumed = 0  # scans a previous run of this outbox got through (or left held): not fitted again
+        self.kept = 0  # nodes of publish_all's source that the keyframe policy kept
+        self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
         self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
         self._rttvar = 0.0
         self._stop = threading.Event()
@@ -156,52 +167,114 @@ class Agent:
         with self._changed:
             self._changed.notify_all()
 
-    # -- the run -------------------------------------------------------------------------------
-    def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
-        """Fit and send every node, with pose-graph updates; returns the updates sent."""
+    # -- the embeddable API -------------------------------------------------------------------
+    @classmethod
+    def open(cls, config: GmmapConfig | AgentConfig) -> Agent:
+        """An agent for a robot process that has its own scans and poses (see examples/).
+
+        `config` is a whole configuration (its agent, fit and keyframe sections) or just the
+        agent section (default fit and keyframe policy); `robot` must be set. The outbox is
+        `config.outbox` (default ./gmmap-data/outbox-<robot>.db); a robot process that restarts
+        with the same outbox resends what was not acknowledged and numbers its nodes on.
+        """
+        if isinstance(config, AgentConfig):
+            config = GmmapConfig(agent=config)
+        o = config.agent
+        o.check_runnable(needs_source=False)
+        outbox = Outbox(o.outbox_path, o.fleet, o.robot)
+        zenoh_settings = zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config)
+        agent = cls(o, outbox, zenoh_settings, config.fit, config.keyframe)
+        agent._owns_outbox = True
+        return agent
+
+    def __enter__(self) -> Agent:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()  # what is not acknowledged stays in the outbox for the next run
+
+    def add_scan(
+        self, points: np.ndarray, no_return: np.ndarray | None, pose: Pose, stamp: float, node: int | None = None
+    ) -> int | None:
+        """Fit one scan and send it; its node id, or None if the keyframe policy skipped it (or the
+        server refused this robot's scans for its quota: see `refused`).
+
+        points: (n, d) returned end points in the sensor frame, metres; no_return: (m, d) directions
+        of beams without a return (or None); pose: the sensor's pose in the robot's map frame, as the
+        robot knows it now (odometry or on-line SLAM); stamp: seconds. `node` defaults to one more
+        than the last node this outbox has seen.
+        """
+        if not isinstance(pose, Pose):
+            raise TypeError(f"pose: expected gmm_core.Pose, got {type(pose).__name__}")
+        points = _points("points", points, pose.dim)
+        no_return = _points("no_return", np.empty((0, pose.dim)) if no_return is None else no_return, pose.dim)
+        if not self._keyframes.keep(pose, stamp):
+            return None
+        if node is None:
+            last = self.outbox.last_id("scan")
+            node = 0 if last is None else last + 1
+        return node if self._send_scan(node, points, no_return, pose, stamp) else None
+
+    def correct(self, poses: Mapping[int, Pose], anchor: Pose | None = None) -> int:
+        """Send a pose-graph update: corrected sensor poses of earlier nodes (and where the robot's
+        map frame sits in the fleet's world, if known); returns its revision."""
         o = self.options
-        config = None  # the fit as it applies to this source's dimension, from its first scan
-        corrected = []
+        update = PoseGraphUpdate(o.fleet, o.robot, 0, tuple(poses.items()), anchor)  # checked before numbering
+        revision = self.outbox.next_revision()  # increasing across runs of this outbox
+        self.send("poses", revision, poses_key(o.fleet, o.robot), encode(replace(update, revision=revision)))
+        return revision
+
+    def flush(self, timeout: float) -> int:
+        """Wait until everything sent is acknowledged, at most `timeout` s; returns what is still held
+        (0: all stored by the server). What is held stays in the outbox and is resent."""
+        return self.wait_acknowledged(timeout)
+
+    def _send_scan(self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float) -> bool:
+        if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
+            self.unsent += 1
+            return False
+        o = self.options
+        model = fit_scan(points, no_return, self.fit.for_dimension(pose.dim))
+        message = ScanMessage(o.fleet, o.robot, node, stamp, model, pose)
+        self.send("scan", node, scan_key(o.fleet, o.robot, node), encode(message, o.encoding))
+        return True
+
+    # -- a whole source ------------------------------------------------------------------------
+    def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
+        """Fit and send every node the keyframe policy keeps, with pose-graph updates; returns the
+        updates sent. `kept` counts the nodes, `resumed` those a previous run got through."""
+        o = self.options
+        corrected: dict[int, Pose] = {}
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender.
         done = self.outbox.acked("scan") | self.outbox.held("scan")
-        self.resumed = 0
+        self.resumed = self.kept = 0
         sent = 0
         started = time.monotonic()
         for count, node in enumerate(nodes, 1):
-            if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
-                self.unsent += 1
-                continue
-            if node.node in done:
-                self.resumed += 1
-                if node.corrected is not None:
-                    corrected.append((node.node, node.corrected))
-                if progress is not None:
-                    progress(1)
-                continue
-            if o.rate > 0:
-                time.sleep(max(0.0, started + sent / o.rate - time.monotonic()))
-            sent += 1
-            config = config or self.fit.for_dimension(node.scan.pose.dim)
-            model = fit_scan(node.scan.hits, node.scan.no_return, config)
-            message = ScanMessage(o.fleet, o.robot, node.node, node.scan.stamp, model, node.estimate)
-            self.send("scan", node.node, scan_key(o.fleet, o.robot, node.node), encode(message, o.encoding))
-            if node.corrected is not None:
-                corrected.append((node.node, node.corrected))
-                if o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
-                    updates += self._send_update(corrected)
             if progress is not None:
                 progress(1)
+            # the same decisions on every run of a source, so a resumed run skips the same scans
+            if self._keyframes.keep(node.estimate, node.scan.stamp):
+                self.kept += 1
+                if node.node in done:
+                    self.resumed += 1
+                    delivered = True
+                else:
+                    if o.rate > 0:
+                        time.sleep(max(0.0, started + sent / o.rate - time.monotonic()))
+                    sent += 1
+                    scan = node.scan
+                    delivered = self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+                if delivered and node.corrected is not None:
+                    corrected[node.node] = node.corrected
+            if corrected and o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
+                self.correct(corrected)
+                updates += 1
         if corrected:  # and once at the end, as a back end closing its graph would
-            updates += self._send_update(corrected)
+            self.correct(corrected)
+            updates += 1
         return updates
-
-    def _send_update(self, corrected) -> int:
-        o = self.options
-        revision = self.outbox.next_revision()  # increasing across runs of this outbox
-        update = PoseGraphUpdate(o.fleet, o.robot, revision, tuple(corrected))
-        self.send("poses", revision, poses_key(o.fleet, o.robot), encode(update))
-        return 1
 
     def wait_acknowledged(self, timeout: float) -> int:
         """Block until the outbox is empty or `timeout` s pass; returns what is still pending."""
@@ -219,6 +292,8 @@ class Agent:
         if connected:
             self._close_session()
         # else: the connector is still blocked in zenoh.open (nothing reachable); it is a daemon
+        if self._owns_outbox:
+            self.outbox.close()
 
     def _close_session(self) -> None:
         if self._ack_subscriber is not None:
@@ -227,18 +302,27 @@ class Agent:
         self.session.close()
 
 
-def run_agent(o: AgentConfig, fit: FitConfig = FitConfig()) -> int:
+def _points(name: str, a, dim: int) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise ValueError(f"{name}: expected an (n, {dim}) array for a {dim}D pose, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name}: {int((~np.isfinite(a)).any(axis=1).sum())} rows are not finite")
+    return np.ascontiguousarray(a)
+
+
+def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
     """Run one agent until its source is published and acknowledged; the process exit code."""
     o.check_runnable()
     started = time.perf_counter()
-    print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit)}", file=sys.stderr, flush=True)
+    print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit, keyframe=keyframe)}", file=sys.stderr, flush=True)
     if o.update_every is None:
         o = replace(o, update_every=default_update_every(o.source, o.rate))
-    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, poses=o.poses)
+    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, **o.reader_options())
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
-    outbox = Outbox(o.outbox or Path("gmmap-data") / f"outbox-{o.robot}.db", o.fleet, o.robot)
-    agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config), fit)
+    outbox = Outbox(o.outbox_path, o.fleet, o.robot)
+    agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config), fit, keyframe)
     try:
         from tqdm import tqdm
 
@@ -266,8 +350,10 @@ def run_agent(o: AgentConfig, fit: FitConfig = FitConfig()) -> int:
             )
             return 3
         resumed = f" ({agent.resumed} of them from a previous run: resumed)" if agent.resumed else ""
+        skipped = f" (keyframes of {len(nodes)} read)" if agent.kept < len(nodes) else ""
         print(
-            f"gmmap agent {o.robot}: {len(nodes)} scans{resumed} and {updates} pose-graph updates acknowledged; "
+            f"gmmap agent {o.robot}: {agent.kept} scans{skipped}{resumed} and {updates} pose-graph updates "
+            "acknowledged; "
             f"published after {published - started:.1f} s, all acknowledged after "
             f"{time.perf_counter() - started:.1f} s",
             file=sys.stderr,

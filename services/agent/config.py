@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from gmm_core.validation import require_count, require_number
 from protocol import ENCODINGS, check_id
@@ -13,13 +14,15 @@ from services.zenoh_config import DEFAULT_ENDPOINT
 class AgentConfig:
     robot: str | None = None  # required to run: the robot's id, in its keys gmmap/<fleet>/<robot>/...
     source: str | None = (
-        None  # required to run: carmen:PATH | kurt3d:DIR | xyz:PATH | pcd:DIR | sim:WORLD:INDEX:ROBOTS[:SEED]
+        None  # required to run: FORMAT:PATH (a format of services.datasets.FORMATS) | sim:WORLD:INDEX:ROBOTS[:SEED]
     )
     fleet: str = "default"
     zenoh_connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)  # the router or server the agent (a client) reaches
     zenoh_config: str | None = None  # a Zenoh JSON5 file
     corrections: str | None = None  # corrected CARMEN log: odometry poses first, these as pose-graph updates
-    poses: str | None = None  # pcd source: poses file (KITTI or TUM layout); None: identity poses
+    poses: str | None = None  # point-cloud source: poses file (KITTI or TUM layout); None: the source's own
+    scan_topic: str | None = None  # rosbag source: the LaserScan or PointCloud2 topic; None: the only one
+    pose_topic: str | None = None  # rosbag source: Odometry / PoseStamped topic; None: poses from /tf
     scans: str | None = None  # "A:B" slice of the (matched) scans; node ids stay global
     rate: float = 0.0  # scans per second; 0: as fast as they are fitted
     outbox: str | None = None  # durable outbox; None: ./gmmap-data/outbox-<robot>.db
@@ -43,8 +46,16 @@ class AgentConfig:
         if not self.zenoh_connect:
             raise ValueError("agent.zenoh_connect: an agent needs an endpoint to connect to")
 
-    def check_runnable(self) -> None:
+    def reader_options(self) -> dict[str, str]:
+        """The source options given, as services.datasets.read_scans takes them."""
+        return {k: v for k in ("poses", "scan_topic", "pose_topic") if (v := getattr(self, k)) is not None}
+
+    @property
+    def outbox_path(self) -> Path:
+        return Path(self.outbox) if self.outbox else Path("gmmap-data") / f"outbox-{self.robot}.db"
+
+    def check_runnable(self, needs_source: bool = True) -> None:
         """A ValueError naming what an agent cannot run without."""
-        for name in ("robot", "source"):
+        for name in ("robot", "source") if needs_source else ("robot",):
             if getattr(self, name) is None:
                 raise ValueError(f"agent.{name}: required (--{name}, or `{name}` in the [agent] section of --config)")

@@ -141,6 +141,15 @@ class Outbox:
         with self._lock:
             return self._db.execute("SELECT COALESCE(SUM(MAX(attempts - 1, 0)), 0) FROM outbox").fetchone()[0]
 
+    def last_id(self, kind: str = "scan") -> int | None:
+        """The largest id of `kind` this outbox ever held (sent, acknowledged or refused)."""
+        with self._lock:
+            return self._db.execute(
+                "SELECT MAX(id) FROM (SELECT id FROM outbox WHERE kind = ?1 UNION ALL "
+                "SELECT id FROM acked WHERE kind = ?1 UNION ALL SELECT id FROM rejected WHERE kind = ?1)",
+                (kind,),
+            ).fetchone()[0]
+
     def next_revision(self) -> int:
         """1, 2, 3, ... across runs of this outbox: the server ignores revisions older than it holds."""
         with self._lock, self._db:

@@ -19,12 +19,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 from gmm_core import Pose
-from services.datasets import RangeScan, match_by_timestamp, read_scans
+from services.datasets import FORMATS, RangeScan, match_by_timestamp, read_scans
 from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval, shared_fleet
 
 LOG_UPDATE_EVERY = 100  # scans between pose-graph updates of a log with --corrections
-
-SOURCE_FORMATS = ("carmen", "kurt3d", "xyz", "pcd")
 
 
 @dataclass(frozen=True)
@@ -38,7 +36,7 @@ class Node:
 def parse_source(text: str) -> tuple[str | None, str]:
     """ "carmen:PATH" -> ("carmen", PATH); a bare path leaves the format to be guessed (None)."""
     fmt, sep, path = text.partition(":")
-    if sep and fmt in SOURCE_FORMATS:
+    if sep and fmt in FORMATS:
         return fmt, path
     return None, text
 
@@ -102,17 +100,19 @@ def load_nodes(
     *,
     rate: float = 0.0,
     update_every: int | None = None,
-    poses: str | None = None,
+    **options,
 ) -> list[Node] | SimulatedNodes:
-    """The nodes of a log (a list), or of a simulated robot (simulated as iterated)."""
+    """The nodes of a log (a list), or of a simulated robot (simulated as iterated); `options` go to
+    the log's reader (services.datasets.read_scans)."""
     if is_simulated(source):
         if corrections is not None:
             raise ValueError("--corrections: a sim source brings its own (the true poses)")
+        if options:
+            raise ValueError(f"--{next(iter(options)).replace('_', '-')}: a sim source takes no reader options")
         if update_every is None:
             update_every = default_update_every(source, rate)
         return simulated_nodes(source, scans, rate, update_every)
     fmt, path = parse_source(source)
-    options = {} if poses is None else {"poses": poses}
     if corrections is None:
         nodes = [Node(s.index, s, s.pose, None) for s in read_scans(path, fmt, **options)]
     else:

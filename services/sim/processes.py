@@ -22,6 +22,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+# A simulated robot publishes every scan (no keyframe policy), so load and bandwidth figures compare.
+EVERY_SCAN = ("--keyframe-distance", "0", "--keyframe-angle", "0", "--keyframe-period", "0")
+
+
 class Processes:
     """Children started with `python -m services.cli`; `close` stops whatever still runs."""
 
@@ -104,6 +108,7 @@ class Processes:
             f"tcp/127.0.0.1:{zenoh_port}",
             "--outbox",
             str(self.workdir / f"outbox-{robot}.db"),
+            *EVERY_SCAN,
             *extra,
         )
 

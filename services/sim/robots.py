@@ -16,6 +16,7 @@ from pathlib import Path
 from services.agent.agent import run_agent
 from services.agent.config import AgentConfig
 from services.config import load_config
+from services.datasets.keyframes import KeyframeConfig
 from services.sim.fleet import SimSource, robot_name
 
 
@@ -33,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", help="a gmmap configuration file: its [fit] section is the robots' fit")
     args = p.parse_args(argv)
     fit = load_config(args.config).fit
+    # A simulated robot publishes every scan, so that load and bandwidth figures compare across runs.
+    every_scan = KeyframeConfig.every_scan()
     codes: dict[str, int] = {}
 
     def robot(index: int, port: int) -> None:
@@ -50,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
                     outbox=str(args.workdir / f"outbox-{name}.db"),
                 ),
                 fit,
+                every_scan,
             )
         except Exception as error:  # noqa: BLE001 - one robot's failure is reported, the others go on
             print(f"robot {name}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)

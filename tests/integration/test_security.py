@@ -24,7 +24,7 @@ from services.map_server.store import Store
 from services.zenoh_config import zenoh_config
 from support.net import free_port, http_get, metric
 from support.paths import ROOT
-from support.processes import stored_nodes
+from support.processes import EVERY_SCAN, stored_nodes
 
 SLICES = {"a": "0:30", "b": "455:485"}
 
@@ -54,6 +54,7 @@ def agent(procs, robot: str, endpoint: str, data_dir: Path, config: str, *extra:
         str(procs.workdir / f"outbox-{robot}.db"),
         "--timeout",
         "30",
+        *EVERY_SCAN,  # the tests count nodes
         *extra,
     )
 
@@ -212,6 +213,7 @@ def test_a_robot_over_its_quota_is_told_why_and_stops(procs, data_dir, tmp_path)
         str(tmp_path / "outbox-a.db"),
         "--timeout",
         "30",
+        *EVERY_SCAN,  # "the first ones, in order" below
     )
     assert procs.finish(robot, 60) == 3, procs.log(robot)  # told (3), not left resending until its timeout (1)
     summary = procs.log(robot).strip().splitlines()[-1]

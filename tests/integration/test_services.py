@@ -19,7 +19,7 @@ from protocol import Ack, MapQuery, MapReply, ScanMessage, ack_key, decode, enco
 from services.agent.map_client import MapQueryError, query_bytes
 from services.replay import data_extent
 from support.net import free_port, http_get, metric, wait_for
-from support.processes import HALVES, acked_nodes, store_db, stored_nodes
+from support.processes import EVERY_SCAN, HALVES, acked_nodes, store_db, stored_nodes
 
 RESOLUTION = 0.1
 
@@ -221,6 +221,7 @@ def test_agent_and_server_meet_through_a_router(procs, data_dir, tmp_path):
         f"carmen:{data_dir / 'carmen' / 'intel-corrected.log.gz'}",
         "--scans",
         "0:50",
+        *EVERY_SCAN,
         "--outbox",
         str(tmp_path / "outbox.db"),
         "--timeout",

@@ -8,7 +8,7 @@ import sqlite3
 import subprocess
 from pathlib import Path
 
-from services.sim.processes import Processes
+from services.sim.processes import EVERY_SCAN, Processes
 
 HALVES = {"a": "0:455", "b": "455:910"}  # the two robots of the Intel replays, by scan range
 
@@ -40,7 +40,8 @@ class TestProcesses(Processes):
         return super().server(None if zenoh else zport, f"127.0.0.1:{hport}", data, "default", *zenoh, name=name)
 
     def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
-        """Robot a or b replaying its half of the Intel log (raw scans, corrected poses) to `zport`."""
+        """Robot a or b replaying its half of the Intel log (raw scans, corrected poses) to `zport`;
+        every scan is a node (no keyframe policy), so the tests can count them."""
         return self.start(
             f"agent-{robot}",
             "agent",
@@ -56,6 +57,7 @@ class TestProcesses(Processes):
             HALVES[robot],
             "--outbox",
             str(self.workdir / f"outbox-{robot}.db"),
+            *EVERY_SCAN,
             *extra,
         )
 

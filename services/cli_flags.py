@@ -1,0 +1,105 @@
+"""The command line's shared flags: each sets a field of the configuration (`section.field`).
+
+A flag's default is SUPPRESS, so that only the flags given override `--config FILE`, which
+overrides the sections' own defaults (shown in the help).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from services.config import GmmapConfig, load_config
+
+DEFAULTS = GmmapConfig()
+
+
+def setting(p: argparse.ArgumentParser, flag: str, key: str, **kwargs) -> None:
+    """A flag that sets field `key` ("section.field") of the configuration; its default is the
+    section's own, shown in the help, and applies only when neither the flag nor --config sets it."""
+    section, name = key.split(".")
+    default = getattr(getattr(DEFAULTS, section), name)
+    if kwargs.get("action") != "store_true":
+        kwargs.setdefault("metavar", None if "choices" in kwargs else flag.lstrip("-").upper().replace("-", "_"))
+        if kwargs.get("action") != "append" and default is not None:
+            kwargs["help"] = f"{kwargs.get('help', '')} (default {default})".strip()
+    p.add_argument(flag, dest=key, default=argparse.SUPPRESS, **kwargs)
+
+
+def config_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        default=None,
+        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim] settings; "
+        "flags given here win over it",
+    )
+
+
+def fit_flags(p: argparse.ArgumentParser) -> None:
+    setting(p, "--max-range", "fit.max_range", type=float, help="where no-return beams end, m")
+    setting(
+        p, "--points-per-component", "fit.points_per_component", type=float, help="about this many points per component"
+    )
+    setting(
+        p,
+        "--component-size",
+        "fit.component_size",
+        type=float,
+        metavar="M",
+        help="at most one component per occupied cell of this size, m (default: none in 2D, 1.0 in 3D)",
+    )
+    setting(p, "--max-components", "fit.max_components", type=int, metavar="K", help="per mixture")
+
+
+def resolve_config(args) -> GmmapConfig:
+    """--config, then the flags that were given, over the defaults."""
+    overrides: dict[str, dict] = {}
+    for key, value in vars(args).items():
+        if "." in key:
+            section, name = key.split(".")
+            overrides.setdefault(section, {})[name] = value
+    return load_config(args.config, overrides)
+
+
+def reconstruction_flags(p: argparse.ArgumentParser) -> None:
+    setting(
+        p,
+        "--samples-per-cell",
+        "reconstruction.samples_per_cell",
+        type=float,
+        help="Monte-Carlo samples per cell of the queried resolution",
+    )
+    setting(p, "--prior", "reconstruction.prior", type=float, help="N_p of Eq. 11")
+    setting(
+        p,
+        "--variance",
+        "reconstruction.variance",
+        type=float,
+        help="sigma^2 of Eq. 12: PNGs show free / occupied / unknown by its dead band",
+    )
+
+
+def keyframe_flags(p: argparse.ArgumentParser) -> None:
+    """When a scan becomes a node (services.datasets.keyframes); 0 turns a reason off."""
+    setting(p, "--keyframe-distance", "keyframe.distance", type=float, metavar="M", help="a node after moving M m")
+    setting(p, "--keyframe-angle", "keyframe.angle", type=float, metavar="DEG", help="a node after turning DEG degrees")
+    setting(p, "--keyframe-period", "keyframe.period", type=float, metavar="S", help="a node after S s")
+
+
+SOURCE_OPTIONS = ("poses", "scan_topic", "pose_topic")  # read_scans keywords, set only when given
+
+
+def source_flags(p: argparse.ArgumentParser) -> None:
+    """The data source of `replay` and `inspect`: a path, its format, and the format's options."""
+    from services.datasets import FORMATS
+
+    p.add_argument("log", help="a log file, scan directory or bag (formats: " + ", ".join(FORMATS) + ")")
+    p.add_argument("--format", choices=FORMATS, default=None, help="default: guessed from the path")
+    p.add_argument("--poses", default=None, help="pcd, ply, kitti: poses file, KITTI (12 numbers a line) or TUM layout")
+    p.add_argument("--scan-topic", default=None, help="rosbag: LaserScan or PointCloud2 topic (default: the only one)")
+    p.add_argument("--pose-topic", default=None, help="rosbag: Odometry or PoseStamped topic (default: poses from /tf)")
+
+
+def source_options(args: argparse.Namespace) -> dict:
+    """The reader options given on the command line."""
+    return {name: getattr(args, name) for name in SOURCE_OPTIONS if getattr(args, name) is not None}

@@ -1,0 +1,78 @@
+"""The embeddable agent (Agent.open / add_scan / correct / flush) against a real map server, and
+the runnable example under examples/ that uses it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gmm_core import Pose
+from protocol import PoseGraphUpdate, decode
+from services.agent.agent import Agent
+from services.agent.config import AgentConfig
+from services.config import GmmapConfig
+from services.datasets import read_scans
+from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
+from support.net import free_port
+from support.processes import store_db, stored_nodes
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_example_publishes_keyframes_and_their_corrections(procs, data_dir, tmp_path):
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    log = data_dir / "carmen" / "intel-corrected.log.gz"
+    example = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "embedded_agent.py"), "--log", str(log)]
+        + ["--connect", f"tcp/127.0.0.1:{zport}", "--outbox", str(tmp_path / "outbox.db"), "--timeout", "60"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert example.returncode == 0, example.stderr[-3000:]
+    # what the default policy keeps, judged on the odometry poses the example publishes
+    decide = KeyframeFilter(KeyframeConfig())
+    scans = list(read_scans(log))
+    kept = [s for s in scans if decide.keep(s.odom_pose, s.stamp)]
+    assert 0 < len(kept) < len(scans)
+    assert stored_nodes(data, "embedded") == set(range(len(kept)))  # numbered 0, 1, ... as added
+    with store_db(data) as db:
+        (raw,) = db.execute("SELECT raw FROM poses WHERE robot = 'embedded'").fetchone()
+    update = decode(raw, expect=PoseGraphUpdate)
+    assert [node for node, _ in update.poses] == list(range(len(kept)))
+    for (_, pose), scan in zip(update.poses, kept):
+        assert np.allclose(pose.t, scan.pose.t, atol=1e-5)  # the corrected poses, not odometry
+
+
+def test_add_scan_rejects_bad_input_and_a_restart_numbers_on(procs, data_dir, tmp_path):
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    config = GmmapConfig(
+        agent=AgentConfig(robot="emb", zenoh_connect=(f"tcp/127.0.0.1:{zport}",), outbox=str(tmp_path / "o.db")),
+        keyframe=KeyframeConfig(distance=0.5, angle=0.0, period=0.0),
+    )
+    scans = list(read_scans(data_dir / "carmen" / "intel-corrected.log.gz"))[:40]
+    with Agent.open(config) as agent:
+        bad = scans[0].hits.copy()
+        bad[3, 1] = np.nan
+        with pytest.raises(ValueError, match="points: 1 rows are not finite"):
+            agent.add_scan(bad, scans[0].no_return, scans[0].pose, scans[0].stamp)
+        with pytest.raises(ValueError, match=r"no_return: expected an \(n, 2\) array"):
+            agent.add_scan(scans[0].hits, np.ones((4, 3)), scans[0].pose, scans[0].stamp)
+        assert agent.outbox.pending() == 0  # nothing was sent
+        first = [agent.add_scan(s.hits, s.no_return, s.pose, s.stamp) for s in scans[:20]]
+        assert first[0] == 0 and first[1] is None  # the second scan is not 0.5 m from the first
+        assert agent.flush(60) == 0
+    with Agent.open(config) as agent:  # the robot process restarts with its outbox
+        again = [agent.add_scan(s.hits, s.no_return, s.pose, s.stamp) for s in scans[20:]]
+        revision = agent.correct({0: Pose.from_xytheta(0.0, 0.0, 0.0)})
+        assert agent.flush(60) == 0
+    ids = [n for n in first + again if n is not None]
+    assert ids == list(range(len(ids))) and again[0] == max(n for n in first if n is not None) + 1
+    assert stored_nodes(data, "emb") == set(ids) and revision == 1
