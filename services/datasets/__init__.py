@@ -7,6 +7,7 @@ the reader; the formats (READERS):
 - xyz: one plain text file of x y z end points.
 - pcd: numbered NNNNNN.pcd(.gz) files (ascii, binary, binary_compressed), --poses KITTI or TUM.
 - ply: numbered NNNNNN.ply(.gz) files (ascii, binary little/big endian), --poses KITTI or TUM.
+- kitti: a KITTI odometry sequence: velodyne/NNNNNN.bin, calib.txt (Tr), poses.txt or --poses, times.txt.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 
 from .carmen import FLASER_LINE, count_carmen, match_by_timestamp, read_carmen
 from .common import DatasetError, RangeScan, read_text
+from .kitti import VELODYNE_FILE, count_kitti, read_kitti
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
 from .pcd import PCD_FILE, count_pcd, read_pcd
 from .ply import PLY_FILE, count_ply, read_ply
@@ -60,6 +62,7 @@ READERS = {
     "xyz": Reader(read_xyz, lambda path, **_: 1),
     "pcd": Reader(read_pcd, lambda path, **_: count_pcd(path)),
     "ply": Reader(read_ply, lambda path, **_: count_ply(path)),
+    "kitti": Reader(read_kitti, lambda path, **_: count_kitti(path)),
 }
 FORMATS = tuple(READERS)
 _CARMEN_SUFFIXES = {".log", ".clf"}
@@ -69,8 +72,8 @@ def guess_format(path: str | Path) -> str:
     """The format of a path.
 
     pcd for NNN.pcd(.gz) or a directory of them; ply for NNN.ply(.gz) or a directory of them;
-    kurt3d for another directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with
-    FLASER lines; xyz otherwise.
+    kitti for a directory with a velodyne/ subdirectory or NNN.bin files; kurt3d for another
+    directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
     """
     path = Path(path)
     if not path.exists():
@@ -79,6 +82,8 @@ def guess_format(path: str | Path) -> str:
     for fmt, pattern in (("pcd", PCD_FILE), ("ply", PLY_FILE)):
         if any(pattern.fullmatch(n) for n in names):
             return fmt
+    if path.is_dir() and ((path / "velodyne").is_dir() or any(VELODYNE_FILE.fullmatch(n) for n in names)):
+        return "kitti"
     if path.is_dir() or SCAN_FILE.fullmatch(path.name):
         return "kurt3d"
     suffixes = path.suffixes[-2:]
@@ -97,7 +102,7 @@ def read_scans(
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
     fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
     run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd,
-    read_ply).
+    read_ply, read_kitti).
     Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
     """
     if not 0 < keep_fraction <= 1:
