@@ -48,8 +48,9 @@ class _Element:
 
 def _property(words: list[str], order: str, where: str) -> _Property:
     """`property TYPE NAME` or `property list COUNT_TYPE ITEM_TYPE NAME`."""
-    types = words[2:4] if words[1:2] == ["list"] else words[1:2]
-    if len(words) != len(types) + 2 + (words[1:2] == ["list"]) or not all(t in _TYPES for t in types):
+    is_list = words[1:2] == ["list"]
+    types = words[2:4] if is_list else words[1:2]
+    if len(words) != (5 if is_list else 3) or not all(t in _TYPES for t in types):
         raise DatasetError(f"{where}: bad property line {' '.join(words)!r}")
     dtypes = [np.dtype(order + _TYPES[t]) for t in types]
     return _Property(words[-1], dtypes[-1], dtypes[0] if len(dtypes) == 2 else None)
