@@ -1,7 +1,13 @@
-"""Readers of real range data: CARMEN laser logs (2D), 3DTK Kurt3D scans and plain xyz files (3D).
+"""Readers of real range data. Every reader yields `RangeScan`s: returned end points and no-return
+directions in the sensor frame, plus the sensor pose in the log's map frame. `read_scans` picks
+the reader; the formats (READERS):
 
-Every reader yields `RangeScan`s: returned end points and no-return directions in the sensor
-frame, plus the sensor pose in the log's map frame. `read_scans` picks the reader.
+- carmen: CARMEN laser logs (2D), .log/.clf, FLASER lines with odometry and corrected poses.
+- kurt3d: 3DTK Kurt3D scans, scanNNN.3d(.gz) with .pose/.frames files.
+- xyz: one plain text file of x y z end points.
+- pcd: numbered NNNNNN.pcd(.gz) files (ascii, binary, binary_compressed), --poses KITTI or TUM.
+- ply: numbered NNNNNN.ply(.gz) files (ascii, binary little/big endian), --poses KITTI or TUM.
+- kitti: a KITTI odometry sequence: velodyne/NNNNNN.bin, calib.txt (Tr), poses.txt or --poses, times.txt.
 """
 
 from __future__ import annotations
@@ -15,8 +21,10 @@ import numpy as np
 
 from .carmen import FLASER_LINE, count_carmen, match_by_timestamp, read_carmen
 from .common import DatasetError, RangeScan, read_text
+from .kitti import VELODYNE_FILE, count_kitti, read_kitti
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
 from .pcd import PCD_FILE, count_pcd, read_pcd
+from .ply import PLY_FILE, count_ply, read_ply
 from .xyz import read_xyz
 
 __all__ = [
@@ -53,6 +61,8 @@ READERS = {
     "kurt3d": Reader(read_kurt3d, lambda path, scans=None, **_: count_kurt3d(path, scans=scans)),
     "xyz": Reader(read_xyz, lambda path, **_: 1),
     "pcd": Reader(read_pcd, lambda path, **_: count_pcd(path)),
+    "ply": Reader(read_ply, lambda path, **_: count_ply(path)),
+    "kitti": Reader(read_kitti, lambda path, **_: count_kitti(path)),
 }
 FORMATS = tuple(READERS)
 _CARMEN_SUFFIXES = {".log", ".clf"}
@@ -61,14 +71,19 @@ _CARMEN_SUFFIXES = {".log", ".clf"}
 def guess_format(path: str | Path) -> str:
     """The format of a path.
 
-    pcd for NNN.pcd(.gz) or a directory of them; kurt3d for another directory or scanNNN.3d(.gz);
-    carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
+    pcd for NNN.pcd(.gz) or a directory of them; ply for NNN.ply(.gz) or a directory of them;
+    kitti for a directory with a velodyne/ subdirectory or NNN.bin files; kurt3d for another
+    directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such file or directory: {path}")
-    if PCD_FILE.fullmatch(path.name) or (path.is_dir() and any(PCD_FILE.fullmatch(f.name) for f in path.iterdir())):
-        return "pcd"
+    names = [f.name for f in path.iterdir()] if path.is_dir() else [path.name]
+    for fmt, pattern in (("pcd", PCD_FILE), ("ply", PLY_FILE)):
+        if any(pattern.fullmatch(n) for n in names):
+            return fmt
+    if path.is_dir() and ((path / "velodyne").is_dir() or any(VELODYNE_FILE.fullmatch(n) for n in names)):
+        return "kitti"
     if path.is_dir() or SCAN_FILE.fullmatch(path.name):
         return "kurt3d"
     suffixes = path.suffixes[-2:]
@@ -86,7 +101,8 @@ def read_scans(
 
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
     fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
-    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd).
+    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd,
+    read_ply, read_kitti).
     Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
     """
     if not 0 < keep_fraction <= 1:

@@ -91,8 +91,11 @@ def proper_rotation(R: np.ndarray, where: str) -> np.ndarray:
     return U @ Vt
 
 
-def parse_rows(text: str, name: str, ncols: int) -> np.ndarray:
-    """Whitespace-separated rows of `ncols` numbers -> (k, ncols) float64; `#` starts a comment."""
+def parse_rows(text: str, name: str, ncols: int, first_line: int = 1) -> np.ndarray:
+    """Whitespace-separated rows of `ncols` numbers -> (k, ncols) float64; `#` starts a comment.
+
+    first_line: the file's line number of the text's first line (text after a header), for errors.
+    """
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": reported below instead
@@ -103,7 +106,7 @@ def parse_rows(text: str, name: str, ncols: int) -> np.ndarray:
         raise DatasetError(f"{name}: no data rows")
     if rows is not None and rows.shape[1] == ncols:
         return rows
-    for lineno, line in enumerate(text.splitlines(), 1):
+    for lineno, line in enumerate(text.splitlines(), first_line):
         fields = line.split("#", 1)[0].split()
         if not fields:
             continue

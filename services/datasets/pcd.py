@@ -3,8 +3,8 @@
 Reads `DATA ascii`, `binary` and `binary_compressed` (LZF), any extra fields (only x y z are
 kept), organised or not; points with a non-finite coordinate are dropped. Points are in the
 sensor frame. PCD files carry no time: `index` and `stamp` are the file number NNNNNN.
-Without a poses file every scan's pose is the identity; with one (KITTI layout, see
-poses.read_kitti_poses) line k is the pose of scan file number k.
+Without a poses file every scan's pose is the identity; with one (see poses.read_poses: KITTI
+layout, line k is the pose of scan file number k; or TUM layout) the scans get its poses.
 """
 
 from __future__ import annotations
@@ -16,10 +16,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from gmm_core.pose import Pose
-
-from .common import DatasetError, RangeScan, numbered_files, read_bytes, split_points
-from .poses import read_poses
+from .common import DatasetError, RangeScan, parse_rows, read_bytes
+from .point_files import point_files, read_numbered_clouds
 
 PCD_FILE = re.compile(r"(\d+)\.pcd(\.gz)?")
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8"}
@@ -71,18 +69,6 @@ def lzf_decompress(data: bytes, size: int) -> bytes:
     return dst.tobytes()
 
 
-def _ascii_error(path: Path, rows: list[str], lineno: int, ncols: int) -> None:
-    """Raise the DatasetError naming the first bad data line (lineno: the DATA line's number)."""
-    for k, r in enumerate(rows):
-        try:
-            vals = [float(v) for v in r.split()]
-        except ValueError:
-            raise DatasetError(f"{path.name}:{lineno + 1 + k}: non-numeric field in {r.strip()!r}") from None
-        if len(vals) != ncols:
-            raise DatasetError(f"{path.name}:{lineno + 1 + k}: expected {ncols} numbers, found {len(vals)}")
-    raise DatasetError(f"{path.name}: numbers in a form numpy cannot read")
-
-
 def read_pcd_points(path: Path) -> np.ndarray:
     """The (n, 3) float64 x y z of one PCD file, non-finite points dropped."""
     raw = read_bytes(path)
@@ -124,15 +110,9 @@ def read_pcd_points(path: Path) -> np.ndarray:
     dtype = np.dtype([(n, d, (c,)) if c > 1 else (n, d) for n, d, c in zip(names, dts, counts)])
     body = raw[pos:]
     if encoding == "ascii":
-        text = body.decode("latin-1").split("\n")
-        rows = [r for r in text if r.strip()]
+        text = body.decode("latin-1")
         ncols = sum(counts)
-        try:
-            table = np.loadtxt(rows, dtype=np.float64, ndmin=2) if rows else np.empty((0, ncols))
-        except ValueError:
-            _ascii_error(path, rows, lineno, ncols)
-        if table.shape[1] != ncols:
-            raise DatasetError(f"{path.name}: expected {ncols} numbers a row, found {table.shape[1]}")
+        table = parse_rows(text, path.name, ncols, lineno + 1) if text.strip() else np.empty((0, ncols))
         offsets = np.cumsum([0] + counts)
         cols = [table[:, offsets[fields.index(a)]] for a in "xyz"]
         points = np.column_stack(cols)
@@ -164,20 +144,10 @@ def read_pcd_points(path: Path) -> np.ndarray:
     return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
 
 
-def _pcd_files(path: Path) -> list[tuple[int, Path]]:
-    return sorted(numbered_files(path, PCD_FILE, "pcd", "numbered pcd").items())
-
-
 def count_pcd(path: str | Path) -> int:
-    return len(_pcd_files(Path(path)))
+    return len(point_files(Path(path), PCD_FILE, "pcd"))
 
 
 def read_pcd(path: str | Path, *, poses: str | Path | None = None, min_range: float = 0.0) -> Iterator[RangeScan]:
     """The scans of a directory of numbered .pcd(.gz) files (or one file), in number order."""
-    files = _pcd_files(Path(path))
-    stamps = np.array([float(k) for k, _ in files])
-    pose_list = read_poses(Path(poses), [k for k, _ in files], stamps) if poses is not None else None
-    for i, (number, f) in enumerate(files):
-        hits, no_return = split_points(read_pcd_points(f), min_range, None)
-        pose = Pose.identity(3) if pose_list is None else pose_list[i]
-        yield RangeScan(index=number, stamp=float(number), pose=pose, odom_pose=None, hits=hits, no_return=no_return)
+    return read_numbered_clouds(path, PCD_FILE, "pcd", read_pcd_points, poses, min_range)
