@@ -1,4 +1,5 @@
-"""Readers of real range data: CARMEN laser logs (2D), 3DTK Kurt3D scans and plain xyz files (3D).
+"""Readers of real range data: CARMEN laser logs (2D), 3DTK Kurt3D scans, PCD sequences and plain xyz
+files (3D), ROS 1 and ROS 2 bags (LaserScan 2D, PointCloud2 3D).
 
 Every reader yields `RangeScan`s: returned end points and no-return directions in the sensor
 frame, plus the sensor pose in the log's map frame. `read_scans` picks the reader.
@@ -17,6 +18,7 @@ from .carmen import FLASER_LINE, count_carmen, match_by_timestamp, read_carmen
 from .common import DatasetError, RangeScan, read_text
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
 from .pcd import PCD_FILE, count_pcd, read_pcd
+from .rosbag import count_rosbag, is_rosbag, read_rosbag
 from .xyz import read_xyz
 
 __all__ = [
@@ -53,6 +55,7 @@ READERS = {
     "kurt3d": Reader(read_kurt3d, lambda path, scans=None, **_: count_kurt3d(path, scans=scans)),
     "xyz": Reader(read_xyz, lambda path, **_: 1),
     "pcd": Reader(read_pcd, lambda path, **_: count_pcd(path)),
+    "rosbag": Reader(read_rosbag, count_rosbag),
 }
 FORMATS = tuple(READERS)
 _CARMEN_SUFFIXES = {".log", ".clf"}
@@ -61,12 +64,15 @@ _CARMEN_SUFFIXES = {".log", ".clf"}
 def guess_format(path: str | Path) -> str:
     """The format of a path.
 
-    pcd for NNN.pcd(.gz) or a directory of them; kurt3d for another directory or scanNNN.3d(.gz);
+    rosbag for .bag/.db3/.mcap or a ROS 2 bag directory (metadata.yaml); pcd for NNN.pcd(.gz) or a
+    directory of them; kurt3d for another directory or scanNNN.3d(.gz);
     carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such file or directory: {path}")
+    if is_rosbag(path):
+        return "rosbag"
     if PCD_FILE.fullmatch(path.name) or (path.is_dir() and any(PCD_FILE.fullmatch(f.name) for f in path.iterdir())):
         return "pcd"
     if path.is_dir() or SCAN_FILE.fullmatch(path.name):
@@ -86,7 +92,8 @@ def read_scans(
 
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
     fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
-    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd).
+    run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd,
+    read_rosbag).
     Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
     """
     if not 0 < keep_fraction <= 1:
