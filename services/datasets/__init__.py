@@ -8,6 +8,7 @@ the reader; the formats (READERS):
 - pcd: numbered NNNNNN.pcd(.gz) files (ascii, binary, binary_compressed), --poses KITTI or TUM.
 - ply: numbered NNNNNN.ply(.gz) files (ascii, binary little/big endian), --poses KITTI or TUM.
 - kitti: a KITTI odometry sequence: velodyne/NNNNNN.bin, calib.txt (Tr), poses.txt or --poses, times.txt.
+- rosbag: ROS 1 .bag and ROS 2 .db3/.mcap bags: LaserScan (2D) or PointCloud2 (3D), poses from a pose topic or /tf.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from .kitti import VELODYNE_FILE, count_kitti, read_kitti
 from .kurt3d import SCAN_FILE, count_kurt3d, read_kurt3d
 from .pcd import PCD_FILE, count_pcd, read_pcd
 from .ply import PLY_FILE, count_ply, read_ply
+from .rosbag import count_rosbag, is_rosbag, read_rosbag
 from .xyz import read_xyz
 
 __all__ = [
@@ -63,6 +65,7 @@ READERS = {
     "pcd": Reader(read_pcd, lambda path, **_: count_pcd(path)),
     "ply": Reader(read_ply, lambda path, **_: count_ply(path)),
     "kitti": Reader(read_kitti, lambda path, **_: count_kitti(path)),
+    "rosbag": Reader(read_rosbag, count_rosbag),
 }
 FORMATS = tuple(READERS)
 _CARMEN_SUFFIXES = {".log", ".clf"}
@@ -71,13 +74,16 @@ _CARMEN_SUFFIXES = {".log", ".clf"}
 def guess_format(path: str | Path) -> str:
     """The format of a path.
 
-    pcd for NNN.pcd(.gz) or a directory of them; ply for NNN.ply(.gz) or a directory of them;
+    rosbag for .bag/.db3/.mcap or a ROS 2 bag directory (metadata.yaml); pcd for NNN.pcd(.gz) or a
+    directory of them; ply for NNN.ply(.gz) or a directory of them;
     kitti for a directory with a velodyne/ subdirectory or NNN.bin files; kurt3d for another
     directory or scanNNN.3d(.gz); carmen for .log/.clf, or .gz/.bz2 with FLASER lines; xyz otherwise.
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such file or directory: {path}")
+    if is_rosbag(path):
+        return "rosbag"
     names = [f.name for f in path.iterdir()] if path.is_dir() else [path.name]
     for fmt, pattern in (("pcd", PCD_FILE), ("ply", PLY_FILE)):
         if any(pattern.fullmatch(n) for n in names):
@@ -102,7 +108,7 @@ def read_scans(
     fmt: one of FORMATS, guessed from the path when None. keep_fraction < 1 keeps that
     fraction of each scan's beams, chosen at random from (seed, scan index), the same on every
     run. Other options go to the format's reader (see read_carmen, read_kurt3d, read_xyz, read_pcd,
-    read_ply, read_kitti).
+    read_ply, read_kitti, read_rosbag).
     Bad files raise DatasetError naming file and line; a missing one FileNotFoundError.
     """
     if not 0 < keep_fraction <= 1:

@@ -91,6 +91,15 @@ def proper_rotation(R: np.ndarray, where: str) -> np.ndarray:
     return U @ Vt
 
 
+def quaternion_pose(t: np.ndarray, q_wxyz: np.ndarray, where: str) -> Pose:
+    """The pose (t, q) with q normalised: files and messages print few digits, but a norm far
+    from 1 (an all-zero quaternion, a field mix-up) is a DatasetError naming `where`."""
+    norm = np.linalg.norm(q_wxyz)
+    if not 0.9 < norm < 1.1:
+        raise DatasetError(f"{where}: quaternion norm {norm:.3f}, expected 1")
+    return Pose.from_quaternion(t, np.asarray(q_wxyz, dtype=np.float64) / norm)
+
+
 def parse_rows(text: str, name: str, ncols: int, first_line: int = 1) -> np.ndarray:
     """Whitespace-separated rows of `ncols` numbers -> (k, ncols) float64; `#` starts a comment.
 

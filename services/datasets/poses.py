@@ -14,7 +14,7 @@ import numpy as np
 
 from gmm_core.pose import Pose
 
-from .common import DatasetError, parse_rows, proper_rotation, read_text
+from .common import DatasetError, parse_rows, proper_rotation, quaternion_pose, read_text
 
 
 def read_poses(path: Path, numbers: list[int], stamps: np.ndarray) -> list[Pose]:
@@ -43,9 +43,6 @@ def read_poses(path: Path, numbers: list[int], stamps: np.ndarray) -> list[Pose]
             if len(rows) > 1 and abs(rows[j - 1, 0] - s) <= abs(rows[j, 0] - s):
                 j -= 1
             t, q = rows[j, 1:4], rows[j, 4:8]
-            norm = np.linalg.norm(q)
-            if not 0.9 < norm < 1.1:
-                raise DatasetError(f"{path.name}:{int(order[j]) + 1}: quaternion norm {norm:.3f}, expected 1")
-            out.append(Pose.from_quaternion(t, np.array([q[3], q[0], q[1], q[2]]) / norm))
+            out.append(quaternion_pose(t, np.array([q[3], q[0], q[1], q[2]]), f"{path.name}:{int(order[j]) + 1}"))
         return out
     raise DatasetError(f"{path.name}:1: expected 12 numbers (KITTI) or 8 (TUM), found {len(first)} fields")
