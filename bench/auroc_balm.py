@@ -158,7 +158,8 @@ def main() -> None:
         )
         print(f"keep {fraction}: done, GMM {t_gmm:.0f} s, OctoMap insert {t_insert:.0f} s, query {t_query:.0f} s")
     print(
-        "\n| points kept | scans | AUROC GMM | AUROC OctoMap | AUROC OctoMap, maxrange 10 m | AUROC raw grid "
+        f"\n| points kept | scans | AUROC GMM | AUROC OctoMap | AUROC OctoMap, maxrange {config.max_range:g} m "
+        "| AUROC raw grid "
         "| GMM components/scan | GMM bytes/scan (q) | raw xyz bytes/scan | GMM replay s | OctoMap insert s "
         "| OctoMap query s |"
     )
