@@ -5,6 +5,8 @@ from protocol.errors import ProtocolError
 from protocol.keys import (
     ack_key,
     check_id,
+    inventory_key,
+    inventory_wildcard,
     occupancy_key,
     occupancy_wildcard,
     parse_key,
@@ -13,7 +15,16 @@ from protocol.keys import (
     scan_key,
     scan_wildcard,
 )
-from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
+from protocol.messages import (
+    Ack,
+    MapQuery,
+    MapReply,
+    Message,
+    PoseGraphUpdate,
+    Rejection,
+    ScanMessage,
+    StoreInventory,
+)
 
 __all__ = [
     "ENCODINGS",
@@ -25,6 +36,8 @@ __all__ = [
     "ProtocolError",
     "ack_key",
     "check_id",
+    "inventory_key",
+    "inventory_wildcard",
     "occupancy_key",
     "occupancy_wildcard",
     "parse_key",
@@ -39,4 +52,5 @@ __all__ = [
     "PoseGraphUpdate",
     "Rejection",
     "ScanMessage",
+    "StoreInventory",
 ]

@@ -19,11 +19,22 @@ from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.errors import ProtocolError
 from protocol.keys import MAX_NODE, check_id
-from protocol.messages import Ack, MapQuery, MapReply, Message, PoseGraphUpdate, Rejection, ScanMessage
+from protocol.messages import (
+    Ack,
+    MapQuery,
+    MapReply,
+    Message,
+    PoseGraphUpdate,
+    Rejection,
+    ScanMessage,
+    StoreInventory,
+)
 from protocol.quantize import dequantize, quantize, record_bits, stream_bytes
 from protocol.wire import Fields
 
-VERSION = 1
+VERSION = 2
+# What changed from the previous version, for the error an old peer's message gets.
+VERSION_CHANGES = {1: "acknowledgements name the store; pose-graph updates apply node by node"}
 ENCODINGS = ("q", "f32")
 MAX_COMPONENTS = 4096  # default cap on occupied + free components of one scan
 MAX_BYTES = 1 << 20  # default cap on a payload, checked before unpacking
@@ -33,7 +44,7 @@ QUATERNION_NORM_TOLERANCE = 1e-3
 SYMMETRY_TOLERANCE = 1e-6  # relative to the component's largest covariance entry
 UNCHECKED = "unchecked error"  # prefix of errors caught by the safety net, not a named check
 
-TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5, Rejection: 6}
+TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5, Rejection: 6, StoreInventory: 7}
 
 
 def encode(message: Message, encoding: str = "q") -> bytes:
@@ -95,7 +106,9 @@ def _map_without_duplicates(pairs):
 def _decode_message(f: Fields, max_components: int) -> Message:
     version = f.get("v", "version")
     if type(version) is not int or version != VERSION:
-        raise ProtocolError("version", f"unsupported version {version!r:.80}, this decoder reads {VERSION}")
+        known = type(version) is int and version in VERSION_CHANGES
+        change = f" (version {VERSION}: {VERSION_CHANGES[version]}; upgrade the peer)" if known else ""
+        raise ProtocolError("version", f"unsupported version {version!r:.80}, this decoder reads {VERSION}{change}")
     code = f.get("t", "type")
     decoder = _DECODERS.get(code) if type(code) is int else None
     if decoder is None:
@@ -317,27 +330,60 @@ def _encode_ack(message: Ack, encoding: str) -> dict:
     return {
         "f": message.fleet,
         "r": message.robot,
+        "store": message.store,
         "kind": message.kind,
         "ids": np.array(message.ids, dtype="<u8").tobytes(),
+        "queued": np.array(message.queued, dtype="<u8").tobytes(),
     }
 
 
 def _decode_ack(f: Fields, max_components: int) -> Ack:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
-    return Ack(fleet, robot, f.get("kind", "kind"), tuple(_counts(f.array("ids", "ids", "<u8"), "ids")))
+    ids = tuple(_counts(f.array("ids", "ids", "<u8"), "ids"))
+    queued = tuple(_counts(f.array("queued", "queued", "<u8"), "queued"))
+    return Ack(fleet, robot, check_id(f.get("store", "store"), "store"), f.get("kind", "kind"), ids, queued)
 
 
 def _encode_rejection(message: Rejection, encoding: str) -> dict:
     return {
-        **_encode_ack(Ack(message.fleet, message.robot, message.kind, message.ids), encoding),
+        "f": message.fleet,
+        "r": message.robot,
+        "store": message.store,
+        "kind": message.kind,
+        "ids": np.array(message.ids, dtype="<u8").tobytes(),
         "reason": message.reason,
         "detail": message.detail,
     }
 
 
 def _decode_rejection(f: Fields, max_components: int) -> Rejection:
-    ack = _decode_ack(f, max_components)
-    return Rejection(ack.fleet, ack.robot, ack.kind, ack.ids, f.get("reason", "reason"), f.get("detail", "detail"))
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    ids = tuple(_counts(f.array("ids", "ids", "<u8"), "ids"))
+    store, kind = check_id(f.get("store", "store"), "store"), f.get("kind", "kind")
+    return Rejection(fleet, robot, store, kind, ids, f.get("reason", "reason"), f.get("detail", "detail"))
+
+
+def _encode_inventory(message: StoreInventory, encoding: str) -> dict:
+    return {
+        "f": message.fleet,
+        "r": message.robot,
+        "store": message.store,
+        "ranges": np.array(message.ranges, dtype="<u8").reshape(-1).tobytes(),
+        "rev": message.revision,
+    }
+
+
+def _decode_inventory(f: Fields, max_components: int) -> StoreInventory:
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    bounds = f.array("ranges", "ranges", "<u8")
+    if len(bounds) % 2:
+        raise ProtocolError("ranges", f"must hold start, stop pairs, got {len(bounds)} numbers")
+    values = _counts(bounds, "ranges")
+    revision = f.get("rev", "revision")
+    if revision is not None:
+        revision = f.int("rev", "revision")
+    store = check_id(f.get("store", "store"), "store")
+    return StoreInventory(fleet, robot, store, tuple(zip(values[::2], values[1::2])), revision)
 
 
 def _encode_map_query(message: MapQuery, encoding: str) -> dict:
@@ -399,6 +445,7 @@ _ENCODERS: dict[int, Callable[[Any, str], dict]] = {
     4: _encode_map_query,
     5: _encode_map_reply,
     6: _encode_rejection,
+    7: _encode_inventory,
 }
 _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
     1: _decode_scan,
@@ -407,4 +454,5 @@ _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
     4: _decode_map_query,
     5: _decode_map_reply,
     6: _decode_rejection,
+    7: _decode_inventory,
 }

@@ -46,6 +46,11 @@ def ack_key(fleet: str, robot: str) -> str:
     return f"{PREFIX}/{check_id(fleet, 'fleet')}/{check_id(robot, 'robot')}/ack"
 
 
+def inventory_key(fleet: str, robot: str) -> str:
+    """Queryable of what a server's store holds of one robot (a StoreInventory)."""
+    return f"{PREFIX}/{check_id(fleet, 'fleet')}/{check_id(robot, 'robot')}/inventory"
+
+
 def occupancy_key(fleet: str) -> str:
     return f"{PREFIX}/{check_id(fleet, 'fleet')}/map/occupancy"
 
@@ -64,6 +69,10 @@ def poses_wildcard(fleet: str | None = None) -> str:
     return f"{PREFIX}/{_fleet_or_any(fleet)}/*/poses"
 
 
+def inventory_wildcard(fleet: str | None = None) -> str:
+    return f"{PREFIX}/{_fleet_or_any(fleet)}/*/inventory"
+
+
 def occupancy_wildcard() -> str:
     """The occupancy queryables of every fleet."""
     return f"{PREFIX}/*/map/occupancy"
@@ -72,7 +81,7 @@ def occupancy_wildcard() -> str:
 def parse_key(key: str) -> tuple[str, str | None, str, int | None]:
     """Split a concrete key into (fleet, robot, kind, node).
 
-    kind is "scan", "poses", "ack" or "occupancy"; node is set for scans only, robot is None
+    kind is "scan", "poses", "ack", "inventory" or "occupancy"; node is set for scans only, robot is None
     for occupancy. Anything else, including wildcards and non-canonical node numbers, raises.
     """
     parts = key.split("/") if isinstance(key, str) else []
@@ -82,7 +91,7 @@ def parse_key(key: str) -> tuple[str, str | None, str, int | None]:
     if parts[2:] == ["map", "occupancy"]:
         return fleet, None, "occupancy", None
     robot = check_id(parts[2], "key.robot")
-    if len(parts) == 4 and parts[3] in ("poses", "ack"):
+    if len(parts) == 4 and parts[3] in ("poses", "ack", "inventory"):
         return fleet, robot, parts[3], None
     if len(parts) == 5 and parts[3] == "scan":
         text = parts[4]

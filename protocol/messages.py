@@ -7,6 +7,7 @@ Classes that hold arrays compare by identity (eq=False): numpy arrays have no si
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -16,7 +17,7 @@ import numpy as np
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.errors import ProtocolError
-from protocol.keys import check_count, check_id
+from protocol.keys import MAX_NODE, check_count, check_id
 
 
 def _check_finite(value, field: str) -> float:
@@ -65,10 +66,12 @@ class ScanMessage:
 class PoseGraphUpdate:
     """Corrected node poses in the robot's map frame, and optionally where that frame sits.
 
-    `revision` never decreases per robot; a receiver drops an update older than the newest
-    revision it has applied. One revision may come in several parts (same revision number) when
-    the graph does not fit one message. An update lists only nodes whose poses it sets; others
-    keep their last pose. `anchor` maps the robot's map frame into the fleet's world frame.
+    `revision` increases with each update a robot sends. An update lists only the nodes whose
+    poses it sets (a robot sends those that moved); the others keep their last pose. A receiver
+    applies it node by node: a node takes the pose of the newest revision that listed it, so
+    updates may arrive in any order and none is lost (protocol version 2). One revision may come
+    in several parts (same revision number) when it does not fit one message. `anchor` maps the
+    robot's map frame into the fleet's world frame; the newest revision that carried one wins.
     """
 
     fleet: str
@@ -104,31 +107,37 @@ class PoseGraphUpdate:
 
 @dataclass(frozen=True)
 class Ack:
-    """The server stored these scans (kind "scan", ids = node ids) or applied these pose-graph
-    revisions (kind "poses", ids = revisions). Robots may drop what was acknowledged."""
+    """Store `store` (a server's data directory, by its identity) holds these scans (kind "scan",
+    ids = node ids) or has applied these pose-graph revisions (kind "poses", ids = revisions);
+    `queued` were received and wait in the server's queue, not yet stored: not to be resent, not
+    yet to be forgotten. A robot forgets only what a store it reports to acknowledged."""
 
     fleet: str
     robot: str
+    store: str
     kind: Literal["scan", "poses"]
     ids: tuple[int, ...]
+    queued: tuple[int, ...] = ()
 
     def __post_init__(self):
         check_id(self.fleet, "fleet")
         check_id(self.robot, "robot")
+        check_id(self.store, "store")
         if self.kind not in ("scan", "poses"):
             raise ProtocolError("kind", f'must be "scan" or "poses", got {self.kind!r:.80}')
-        ids = tuple(self.ids)
-        for value in ids:
-            check_count(value, "ids")
-        object.__setattr__(self, "ids", ids)
+        for name in ("ids", "queued"):
+            values = tuple(getattr(self, name))
+            for value in values:
+                check_count(value, name)
+            object.__setattr__(self, name, values)
 
 
 @dataclass(frozen=True)
 class Rejection:
-    """The server refuses these scans (kind "scan", ids = node ids) or pose-graph revisions (kind
-    "poses", ids = revisions) for good: resending them gets the same answer. `reason` is a code
-    (for now only "quota": the robot's storage quota on the server is used up), `detail` says it
-    in words for the robot's log. Robots stop resending them and report the reason.
+    """Store `store` refuses these scans (kind "scan", ids = node ids) or pose-graph revisions
+    (kind "poses", ids = revisions) for good: resending them gets the same answer. `reason` is a
+    code (for now only "quota": the robot's storage quota on the server is used up), `detail`
+    says it in words for the robot's log. Robots stop resending them and report the reason.
 
     A message of its own (not a flag on Ack), so a decoder that predates it ignores it as an
     unknown type and keeps resending: it can never take a refusal for an acknowledgement.
@@ -136,17 +145,64 @@ class Rejection:
 
     fleet: str
     robot: str
+    store: str
     kind: Literal["scan", "poses"]
     ids: tuple[int, ...]
     reason: str
     detail: str = ""
 
     def __post_init__(self):
-        Ack(self.fleet, self.robot, self.kind, self.ids)  # the same rules as an Ack
+        Ack(self.fleet, self.robot, self.store, self.kind, self.ids)  # the same rules as an Ack
         object.__setattr__(self, "ids", tuple(self.ids))
         check_id(self.reason, "reason")
-        if not isinstance(self.detail, str) or len(self.detail) > 1000:
-            raise ProtocolError("detail", "must be a string of at most 1000 characters")
+        if not isinstance(self.detail, str) or len(self.detail.encode()) > 1000:
+            raise ProtocolError("detail", "must be a string of at most 1000 bytes (UTF-8)")
+
+
+@dataclass(frozen=True)
+class StoreInventory:
+    """What store `store` holds of one robot: its scans' node ids as sorted, disjoint, non-touching
+    half-open ranges [start, stop), and the newest pose-graph revision it applied (None: none).
+    The reply to a get on the robot's inventory key: a robot that finds a node missing (a new data
+    directory, a restored backup) sends it again."""
+
+    fleet: str
+    robot: str
+    store: str
+    ranges: tuple[tuple[int, int], ...]
+    revision: int | None = None
+
+    def __post_init__(self):
+        Ack(self.fleet, self.robot, self.store, "scan", ())
+        ranges = tuple((start, stop) for start, stop in self.ranges)
+        previous = -1
+        for start, stop in ranges:
+            check_count(start, "ranges")
+            check_count(stop, "ranges")
+            if not previous < start < stop:
+                raise ProtocolError("ranges", "must be sorted, disjoint, non-touching [start, stop) with start < stop")
+            previous = stop
+        if self.revision is not None:
+            check_count(self.revision, "revision")
+        object.__setattr__(self, "ranges", ranges)
+
+    @classmethod
+    def of(cls, fleet: str, robot: str, store: str, nodes, revision: int | None = None) -> StoreInventory:
+        """The inventory of a set of node ids."""
+        ranges: list[list[int]] = []
+        for node in sorted(set(nodes)):
+            if ranges and ranges[-1][1] == node:
+                ranges[-1][1] = node + 1
+            else:
+                ranges.append([node, node + 1])
+        return cls(fleet, robot, store, tuple((a, b) for a, b in ranges), revision)
+
+    def __contains__(self, node: int) -> bool:
+        k = bisect.bisect_right(self.ranges, (node, MAX_NODE + 1)) - 1
+        return k >= 0 and self.ranges[k][0] <= node < self.ranges[k][1]
+
+    def __len__(self) -> int:
+        return sum(stop - start for start, stop in self.ranges)
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,4 +271,4 @@ class MapReply:
         return self.origin.shape[0]
 
 
-Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply | Rejection
+Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply | Rejection | StoreInventory

@@ -384,6 +384,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)",
     )
+    setting(
+        p,
+        "--keep-acked-mb",
+        "agent.keep_acked_mb",
+        type=float,
+        metavar="MIB",
+        help="acknowledged messages the outbox keeps, so a server that lost them gets them again",
+    )
     config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(run=cmd_agent)

@@ -28,9 +28,11 @@ from protocol import (
     ProtocolError,
     Rejection,
     ScanMessage,
+    StoreInventory,
     ack_key,
     decode,
     encode,
+    inventory_key,
     poses_key,
     scan_key,
 )
@@ -68,6 +70,13 @@ class Agent:
         self.unsent = 0  # scans not published because of a refusal
         self.kept = 0  # nodes of publish_all's source that the keyframe policy kept
         self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
+        self.store: str | None = None  # the store this agent reports to, from its inventory
+        self.requeued: dict[
+            str, int
+        ] = {}  # {store that had acknowledged them: messages sent again} as the store lacked them
+        self.lost: set[int] = set()  # acknowledged nodes the store lacks and whose bytes are gone: refit
+        self._reconciled = threading.Event()  # set once the store's inventory was compared with the outbox
+        self._store_changed = threading.Event()  # an Ack named another store: compare again
         self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
         self._rttvar = 0.0
         self._stop = threading.Event()
@@ -88,6 +97,46 @@ class Agent:
             closed = self._stop.is_set()  # close() ran while we were connecting
         if closed:
             self._close_session()
+        else:
+            self._store_changed.set()  # the resender asks the store for its inventory
+
+    def reconcile(self) -> bool:
+        """Ask the store for what it holds of this robot and put back into the outbox what it lacks;
+        False if no store answered. Run at connection and whenever an Ack names another store."""
+        o = self.options
+        session = self.session
+        if session is None:
+            return False
+        inventory = None
+        for reply in session.get(inventory_key(o.fleet, o.robot), timeout=max(o.resend_s, 2.0)):
+            if reply.ok is None:
+                continue
+            try:
+                inventory = decode(reply.ok.payload.to_bytes(), expect=StoreInventory, max_bytes=1 << 24)
+            except ProtocolError as error:
+                log.warning("ignored a malformed inventory: %s", error)
+        if inventory is None:
+            return False
+        requeued, lost = self.outbox.requeue_missing(inventory, inventory.revision)
+        if requeued or lost:
+            log.warning(
+                "store %s lacks %d acknowledged messages: sending them again; %d more are no longer kept",
+                inventory.store,
+                sum(requeued.values()) + len(lost),
+                len(lost),
+            )
+        for store, count in requeued.items():
+            self.requeued[store] = self.requeued.get(store, 0) + count
+        self.lost |= lost
+        self.store = inventory.store
+        self.outbox.set_meta("store", inventory.store)
+        self._reconciled.set()
+        with self._changed:
+            self._changed.notify_all()
+        return True
+
+    def wait_reconciled(self, timeout: float) -> bool:
+        return self._reconciled.wait(timeout)
 
     def _wait_for_server(self, session: zenoh.Session, timeout: float) -> bool:
         """Wait until a subscriber of our scans is known, at most `timeout` s.
@@ -123,6 +172,10 @@ class Agent:
         while not self._stop.wait(self.options.resend_s / 2):
             if self.session is None:
                 continue
+            if self._store_changed.is_set():
+                self._store_changed.clear()
+                if not self.reconcile():
+                    self._store_changed.set()  # no store answered yet: ask again next round
             due = self.outbox.due(time.time(), self.resend_timeout())
             if due:
                 log.info("sending %d unacknowledged messages again", len(due))
@@ -162,7 +215,9 @@ class Agent:
                 )
             self.refused = answer
         else:
-            for round_trip in self.outbox.acknowledge(answer.kind, answer.ids):
+            if answer.store != self.store:  # a restarted server on a new data dir, or another server
+                self._store_changed.set()
+            for round_trip in self.outbox.acknowledge(answer.kind, answer.ids, answer.store):
                 self._measured(round_trip)
         with self._changed:
             self._changed.notify_all()
@@ -181,7 +236,7 @@ class Agent:
             config = GmmapConfig(agent=config)
         o = config.agent
         o.check_runnable(needs_source=False)
-        outbox = Outbox(o.outbox_path, o.fleet, o.robot)
+        outbox = Outbox(o.outbox_path, o.fleet, o.robot, o.keep_acked_bytes)
         zenoh_settings = zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config)
         agent = cls(o, outbox, zenoh_settings, config.fit, config.keyframe)
         agent._owns_outbox = True
@@ -246,8 +301,9 @@ class Agent:
         o = self.options
         corrected: dict[int, Pose] = {}
         updates = 0
-        # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender.
-        done = self.outbox.acked("scan") | self.outbox.held("scan")
+        # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
+        # those the store lacks and the outbox no longer keeps are fitted again.
+        done = (self.outbox.acked("scan") | self.outbox.held("scan")) - self.lost
         self.resumed = self.kept = 0
         sent = 0
         started = time.monotonic()
@@ -277,12 +333,17 @@ class Agent:
         return updates
 
     def wait_acknowledged(self, timeout: float) -> int:
-        """Block until the outbox is empty or `timeout` s pass; returns what is still pending."""
+        """Block until a store's inventory was compared with the outbox and the outbox is empty, or
+        `timeout` s pass; returns what is still pending (at least 1 while no store answered)."""
         deadline = time.monotonic() + timeout
         with self._changed:
-            while (pending := self.outbox.pending()) and time.monotonic() < deadline:
+            while (pending := self._unconfirmed()) and time.monotonic() < deadline:
                 self._changed.wait(min(0.5, max(0.0, deadline - time.monotonic())))
         return pending
+
+    def _unconfirmed(self) -> int:
+        pending = self.outbox.pending()
+        return pending if self._reconciled.is_set() and not self._store_changed.is_set() else max(pending, 1)
 
     def close(self) -> None:
         self._stop.set()
@@ -311,6 +372,17 @@ def _points(name: str, a, dim: int) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
+def _requeued(agent: Agent) -> str:
+    if not agent.requeued and not agent.lost:
+        return ""
+    earlier = ", ".join(
+        f"{n} acknowledged by store {store or '(unnamed, protocol v1)'}" for store, n in agent.requeued.items()
+    )
+    refit = f"; {len(agent.lost)} scans no longer kept were fitted again" if agent.lost else ""
+    lacked = sum(agent.requeued.values()) + len(agent.lost)
+    return f" (the store lacked {lacked} acknowledged messages: sent again {earlier}{refit})"
+
+
 def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
     """Run one agent until its source is published and acknowledged; the process exit code."""
     o.check_runnable()
@@ -321,11 +393,13 @@ def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
     nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, **o.reader_options())
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
-    outbox = Outbox(o.outbox_path, o.fleet, o.robot)
+    outbox = Outbox(o.outbox_path, o.fleet, o.robot, o.keep_acked_bytes)
     agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config), fit, keyframe)
     try:
         from tqdm import tqdm
 
+        # Against the store's inventory first, when it answers soon: what it lacks is sent again.
+        agent.wait_reconciled(min(o.timeout, 5.0))
         with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:
             updates = agent.publish_all(nodes, bar.update)
         published = time.perf_counter()
@@ -353,7 +427,7 @@ def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
         skipped = f" (keyframes of {len(nodes)} read)" if agent.kept < len(nodes) else ""
         print(
             f"gmmap agent {o.robot}: {agent.kept} scans{skipped}{resumed} and {updates} pose-graph updates "
-            "acknowledged; "
+            f"acknowledged by store {agent.store}{_requeued(agent)}; "
             f"published after {published - started:.1f} s, all acknowledged after "
             f"{time.perf_counter() - started:.1f} s",
             file=sys.stderr,

@@ -31,6 +31,9 @@ class AgentConfig:
     odometry_only: bool = False  # with corrections: the matched scans, but no pose-graph updates
     resend_s: float = 1.0  # s, least time before resending what is unacknowledged (grows with the Ack RTT)
     timeout: float = 120.0  # s to wait for the last Acks once everything is published
+    # MiB of acknowledged messages the outbox keeps, oldest forgotten first, so that a server that
+    # lost them (a fresh data directory, a restored backup) gets them again; 0: forget at once.
+    keep_acked_mb: float = 256.0
 
     def __post_init__(self):
         if self.robot is not None:
@@ -41,6 +44,7 @@ class AgentConfig:
         require_number("agent.rate", self.rate, positive=False)
         require_number("agent.resend_s", self.resend_s, positive=True)
         require_number("agent.timeout", self.timeout, positive=False)
+        require_number("agent.keep_acked_mb", self.keep_acked_mb, positive=False)
         if self.update_every is not None:
             require_count("agent.update_every", self.update_every, minimum=0)
         if not self.zenoh_connect:
@@ -49,6 +53,10 @@ class AgentConfig:
     def reader_options(self) -> dict[str, str]:
         """The source options given, as services.datasets.read_scans takes them."""
         return {k: v for k in ("poses", "scan_topic", "pose_topic") if (v := getattr(self, k)) is not None}
+
+    @property
+    def keep_acked_bytes(self) -> int:
+        return int(self.keep_acked_mb * 2**20)
 
     @property
     def outbox_path(self) -> Path:

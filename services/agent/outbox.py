@@ -2,10 +2,12 @@
 
 A message is written (and committed) before it is first published and deleted only when its
 Ack arrives, so a crash of the agent, of the server or of the link loses nothing: whatever
-is still here is resent. `acked` keeps a log of what the server confirmed (audits, tests, and
-what a restarted agent skips), `rejected` what the server refused for good (a Rejection: not
-resent, reported), and `meta` the next pose-graph revision, which must keep increasing across
-restarts.
+is still here is resent. `acked` keeps what a server confirmed, with the store that did (its
+identity, from the Ack) and, up to `keep_bytes` (the oldest forgotten first), the message's bytes:
+a server that later lacks them (a fresh data directory, a restored backup) gets them again
+(`requeue_missing`). It also tells a restarted agent what to skip. `rejected` keeps what the server
+refused for good (a Rejection: not resent, reported), and `meta` the next pose-graph revision,
+which must keep increasing across restarts, and the last store seen.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ CREATE TABLE IF NOT EXISTS outbox (
     sent REAL NOT NULL, attempts INTEGER NOT NULL, PRIMARY KEY (kind, id)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS acked (
-    kind TEXT NOT NULL, id INTEGER NOT NULL, at REAL NOT NULL, PRIMARY KEY (kind, id)
+    kind TEXT NOT NULL, id INTEGER NOT NULL, at REAL NOT NULL, store TEXT NOT NULL DEFAULT '',
+    key TEXT, raw BLOB, PRIMARY KEY (kind, id)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS rejected (
     kind TEXT NOT NULL, id INTEGER NOT NULL, reason TEXT NOT NULL, detail TEXT NOT NULL, at REAL NOT NULL,
@@ -39,8 +42,9 @@ class Outbox:
     WAL with synchronous=NORMAL: a committed row survives the agent being killed.
     """
 
-    def __init__(self, path: str | Path, fleet: str, robot: str):
+    def __init__(self, path: str | Path, fleet: str, robot: str, keep_bytes: int = 256 * 2**20):
         self.path = Path(path)
+        self.keep_bytes = keep_bytes
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         # Python's implicit transactions; every write below is one `with self._db:` commit.
@@ -49,6 +53,11 @@ class Outbox:
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.execute("PRAGMA busy_timeout=5000")
         self._db.executescript(SCHEMA)
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(acked)")}
+        for column in ("store TEXT NOT NULL DEFAULT ''", "key TEXT", "raw BLOB"):  # an outbox of protocol v1
+            if column.split()[0] not in columns:
+                self._db.execute(f"ALTER TABLE acked ADD COLUMN {column}")
+        self._retained = self._db.execute("SELECT COALESCE(SUM(LENGTH(raw)), 0) FROM acked").fetchone()[0]
         owner = f"{fleet}/{robot}"
         with self._db:
             self._db.execute("INSERT OR IGNORE INTO meta VALUES ('owner', ?)", (owner,))
@@ -73,8 +82,9 @@ class Outbox:
                 [(time.time(), kind, ident) for kind, ident in items],
             )
 
-    def acknowledge(self, kind: str, ids: tuple[int, ...]) -> list[float]:
-        """Drop acknowledged messages; returns the round-trip times (s) of those sent exactly once.
+    def acknowledge(self, kind: str, ids: tuple[int, ...], store: str) -> list[float]:
+        """Move acknowledged messages to `acked` (bytes kept, up to keep_bytes); returns the round-trip
+        times (s) of those sent exactly once.
 
         A message sent more than once says nothing about the round trip: its Ack may answer
         either sending (Karn's rule).
@@ -84,13 +94,67 @@ class Outbox:
             round_trips = []
             for i in ids:
                 row = self._db.execute(
-                    "DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts", (kind, i)
+                    "DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts, key, raw", (kind, i)
                 ).fetchone()
-                if row is not None and row[1] == 1:
+                if row is None:  # a repeated Ack, or one for a message this outbox no longer holds
+                    self._db.execute(
+                        "INSERT INTO acked (kind, id, at, store) VALUES (?, ?, ?, ?) "
+                        "ON CONFLICT (kind, id) DO UPDATE SET store = excluded.store",
+                        (kind, i, now, store),
+                    )
+                    continue
+                if row[1] == 1:
                     round_trips.append(now - row[0])
-            self._db.executemany("INSERT OR IGNORE INTO acked VALUES (?, ?, ?)", [(kind, i, now) for i in ids])
+                raw = row[3] if self.keep_bytes > 0 else None
+                self._db.execute(
+                    "INSERT OR REPLACE INTO acked VALUES (?, ?, ?, ?, ?, ?)", (kind, i, now, store, row[2], raw)
+                )
+                self._retained += len(raw or b"")
             self._db.executemany("DELETE FROM rejected WHERE kind = ? AND id = ?", [(kind, i) for i in ids])
+            if self._retained > self.keep_bytes:
+                self._forget_oldest()
         return round_trips
+
+    def _forget_oldest(self) -> None:
+        """Drop the bytes of the oldest acknowledged messages down to 90% of keep_bytes (lock held)."""
+        excess = self._retained - int(0.9 * self.keep_bytes)
+        rows = self._db.execute(
+            "SELECT kind, id, LENGTH(raw) FROM acked WHERE raw IS NOT NULL ORDER BY at, kind, id"
+        ).fetchall()
+        drop = []
+        for kind, ident, size in rows:
+            if excess <= 0:
+                break
+            drop.append((kind, ident))
+            excess -= size
+            self._retained -= size
+        self._db.executemany("UPDATE acked SET raw = NULL, key = NULL WHERE kind = ? AND id = ?", drop)
+
+    def requeue_missing(self, scans, revision: int | None) -> tuple[dict[str, int], set[int]]:
+        """After a store's inventory (`scans`: a container of the node ids it holds, `revision`: the
+        newest pose-graph revision it applied): put back into the outbox the acknowledged messages it
+        lacks whose bytes are kept. Returns ({store that had acknowledged them: messages requeued},
+        node ids it lacks whose bytes are gone)."""
+        with self._lock, self._db:
+            rows = self._db.execute("SELECT kind, id, key, raw, store FROM acked").fetchall()
+            missing = [
+                row
+                for row in rows
+                if (row[1] not in scans if row[0] == "scan" else revision is None or row[1] > revision)
+            ]
+            kept = [row for row in missing if row[3] is not None]
+            self._db.executemany("DELETE FROM acked WHERE kind = ? AND id = ?", [row[:2] for row in kept])
+            self._db.executemany("INSERT OR REPLACE INTO outbox VALUES (?, ?, ?, ?, 0, 0)", [row[:4] for row in kept])
+            self._retained -= sum(len(row[3]) for row in kept)
+            by_store: dict[str, int] = {}
+            for row in kept:
+                by_store[row[4]] = by_store.get(row[4], 0) + 1
+            gone = {row[1] for row in missing if row[0] == "scan" and row[3] is None}
+        return by_store, gone
+
+    def set_meta(self, name: str, value: str) -> None:
+        with self._lock, self._db:
+            self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (name, value))
 
     def reject(self, kind: str, ids: tuple[int, ...], reason: str, detail: str) -> int:
         """Drop messages the server refused for good, keeping why; returns how many were still held."""

@@ -148,7 +148,10 @@ class Ingest:
                 f"the quota is {self.quota / 2**20:.4g} MiB (gmmap server --robot-quota-mb)"
             )
             log.warning("refused %d scans of %s: %s", len(nodes), robot, detail)
-            self._send(robot, Rejection(self.state.fleet, robot, "scan", tuple(nodes), "quota", detail))
+            refusal = Rejection(
+                self.state.fleet, robot, self.state.store.identity, "scan", tuple(nodes), "quota", detail
+            )
+            self._send(robot, refusal)
         return kept
 
     def _add_usage(self, robot: str, size: int) -> None:
@@ -181,7 +184,7 @@ class Ingest:
         self._ack(update.robot, "poses", [update.revision])  # an older revision is acked as superseded
 
     def _ack(self, robot: str, kind: str, ids: list[int]) -> None:
-        self._send(robot, Ack(self.state.fleet, robot, kind, tuple(ids)))
+        self._send(robot, Ack(self.state.fleet, robot, self.state.store.identity, kind, tuple(ids)))
 
     def _send(self, robot: str, answer: Ack | Rejection) -> None:
         try:

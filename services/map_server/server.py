@@ -18,7 +18,19 @@ import zenoh
 
 from gmm_core import Grid
 from gmm_core.reconstruct import ReconstructionConfig
-from protocol import MapQuery, MapReply, ProtocolError, decode, encode, occupancy_key, poses_wildcard, scan_wildcard
+from protocol import (
+    MapQuery,
+    MapReply,
+    ProtocolError,
+    decode,
+    encode,
+    inventory_key,
+    inventory_wildcard,
+    occupancy_key,
+    parse_key,
+    poses_wildcard,
+    scan_wildcard,
+)
 from services.api import params  # one set of limits for both APIs
 from services.config import summary
 from services.zenoh_config import zenoh_config
@@ -73,9 +85,11 @@ class ZenohSide:
             self.session.declare_subscriber(scan_wildcard(fleet), on_sample),
             self.session.declare_subscriber(poses_wildcard(fleet), on_sample),
         ]
-        self._queryable = self.session.declare_queryable(
-            occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q)
-        )
+        self._queryables = [
+            self.session.declare_queryable(occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q)),
+            # answered on Zenoh's thread: one SQLite read, and a robot waits for it to resume
+            self.session.declare_queryable(inventory_wildcard(fleet), self._inventory),
+        ]
 
     def publish(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, express=True)
@@ -93,6 +107,18 @@ class ZenohSide:
                 log.exception("occupancy query failed")
                 query.reply_err(f"internal error: {type(error).__name__}")
 
+    def _inventory(self, query: zenoh.Query) -> None:
+        with query:
+            try:
+                fleet, robot, _, _ = parse_key(str(query.key_expr))
+                inventory = self.state.store.inventory(fleet, robot)
+                query.reply(inventory_key(fleet, robot), encode(inventory))
+            except ProtocolError as error:
+                query.reply_err(str(error))
+            except Exception as error:  # noqa: BLE001 - reported to the querier, logged here
+                log.exception("inventory query failed")
+                query.reply_err(f"internal error: {type(error).__name__}")
+
     def stop_ingest(self) -> None:
         """Undeclare the subscribers (callback subscribers outlive their Python reference)."""
         for subscriber in self._subscribers:
@@ -101,7 +127,8 @@ class ZenohSide:
 
     def close(self) -> None:
         self.stop_ingest()
-        self._queryable.undeclare()
+        for queryable in self._queryables:
+            queryable.undeclare()
         self._queries.shutdown(wait=True)
         self.session.close()
 

@@ -12,11 +12,12 @@ from __future__ import annotations
 import sqlite3
 import threading
 import time
+import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol import PoseGraphUpdate, ScanMessage, decode, encode
+from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode, encode
 
 DB_NAME = "gmmap.db"
 
@@ -26,6 +27,7 @@ CREATE TABLE IF NOT EXISTS scans (
     stamp REAL NOT NULL, size INTEGER NOT NULL, received REAL NOT NULL, raw BLOB NOT NULL,
     PRIMARY KEY (fleet, robot, node)
 ) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS poses (
     fleet TEXT NOT NULL, robot TEXT NOT NULL, revision INTEGER NOT NULL,
     received REAL NOT NULL, raw BLOB NOT NULL,
@@ -63,6 +65,10 @@ class Store:
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute("PRAGMA busy_timeout=5000")  # readers in other processes (tests, tools)
         self._db.executescript(SCHEMA)
+        # The store's identity, made once with the data directory: Acks name it, so a robot can tell
+        # this store from another (a fresh data directory, a restored backup) and resend what it lacks.
+        self._db.execute("INSERT OR IGNORE INTO meta VALUES ('store', ?)", (uuid.uuid4().hex,))
+        self.identity: str = self._db.execute("SELECT value FROM meta WHERE name = 'store'").fetchone()[0]
         self._graphs: dict[tuple[str, str], PoseGraphUpdate] = {}  # held pose graphs, decoded once
 
     def close(self) -> None:
@@ -154,6 +160,11 @@ class Store:
             query, args = query + " AND robot = ?", args + [robot]
         with self._lock:
             return self._db.execute(query, args).fetchone()[0]
+
+    def inventory(self, fleet: str, robot: str) -> StoreInventory:
+        """What this store holds of `robot`: its node ids and the newest pose-graph revision applied."""
+        graph = self.pose_graph(fleet, robot)
+        return StoreInventory.of(fleet, robot, self.identity, self.nodes(fleet, robot), graph and graph.revision)
 
     def nodes(self, fleet: str, robot: str) -> set[int]:
         with self._lock:

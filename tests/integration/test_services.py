@@ -164,7 +164,7 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     # Well-formed messages that still do not belong: wrong type on the key, robot not the key's.
     model = fit_scan(rng.normal(size=(30, 2)) + [3, 0], np.zeros((0, 2)))
     good = ScanMessage("default", "ok", 7, 1.0, model, Pose.identity(2))
-    session.put(scan_key("default", "fuzz", 1000), encode(Ack("default", "fuzz", "scan", (1,))))
+    session.put(scan_key("default", "fuzz", 1000), encode(Ack("default", "fuzz", "s", "scan", (1,))))
     session.put(scan_key("default", "fuzz", 7), encode(good))
     expected_rejections = 2 * len(garbage) + 2
 

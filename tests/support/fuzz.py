@@ -16,7 +16,7 @@ from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.codec import encode
-from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, Rejection, ScanMessage
+from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
 
 
 def random_rotations(rng: np.random.Generator, count: int, dim: int) -> np.ndarray:
@@ -68,8 +68,10 @@ def seed_messages(rng: np.random.Generator) -> list[bytes]:
         messages.append(encode(PoseGraphUpdate("fleet-a", "robot_1", 3, poses, Pose.identity(dim))))
         messages.append(encode(MapQuery("fleet-a", np.zeros(dim), np.ones(dim), 0.1, ("robot_1",))))
         messages.append(encode(MapReply("fleet-a", np.zeros(dim), 0.5, rng.uniform(size=(2,) * dim))))
-    messages.append(encode(Ack("fleet-a", "robot_1", "scan", (1, 2, 3))))
-    messages.append(encode(Rejection("fleet-a", "robot_1", "scan", (4, 5), "quota", "512 MiB used")))
+    store = "0123456789abcdef0123456789abcdef"
+    messages.append(encode(Ack("fleet-a", "robot_1", store, "scan", (1, 2, 3), queued=(4,))))
+    messages.append(encode(Rejection("fleet-a", "robot_1", store, "scan", (4, 5), "quota", "512 MiB used")))
+    messages.append(encode(StoreInventory("fleet-a", "robot_1", store, ((0, 5), (7, 9)), 3)))
     return messages
 
 
@@ -102,6 +104,7 @@ _ODD_VALUES = [
     [1, 2],
     {},
     {"v": 1},
+    {"v": 2},
 ]
 
 

@@ -181,7 +181,9 @@ def test_other_messages_round_trip():
     np.testing.assert_array_equal(update.anchor.t, [1e6, 5e6])  # float64 on the wire
     update3 = decode(encode(PoseGraphUpdate("f", "r", 0, ((0, Pose.from_quaternion([1, 2, 3], [1, 2, 3, 4])),))))
     assert update3.anchor is None and update3.dim == 3
-    assert decode(encode(Ack("f", "r", "poses", (12,)))) == Ack("f", "r", "poses", (12,))
+    assert decode(encode(Ack("f", "r", "s1", "poses", (12,)))) == Ack("f", "r", "s1", "poses", (12,))
+    queued = Ack("f", "r", "s1", "scan", (1, 2), queued=(3,))
+    assert decode(encode(queued)) == queued
     query = decode(encode(MapQuery("f", [0, 0, 0], [1, 2, 3], 0.05, ("a", "b"))))
     assert query.robots == ("a", "b") and query.resolution == 0.05
     np.testing.assert_array_equal(query.hi, [1, 2, 3])
@@ -250,7 +252,7 @@ def set_padding_bit(raw: dict) -> dict:
 
 INVALID_SCANS = [
     # (name, encoding, edit of the wire map, field named in the error)
-    ("version", "q", lambda r: set_path(r, ("v",), 2), "version"),
+    ("version", "q", lambda r: set_path(r, ("v",), 3), "version"),
     ("version type", "q", lambda r: set_path(r, ("v",), "1"), "version"),
     ("message type", "q", lambda r: set_path(r, ("t",), 42), "type"),
     ("encoding", "q", lambda r: set_path(r, ("e",), "f16"), "encoding"),
@@ -379,8 +381,10 @@ INVALID_OTHERS = [
         "anchor",
     ),
     (PoseGraphUpdate("f", "r", 1, (), Pose.identity(2)), lambda r: set_path(r, ("anchor",), None), "poses"),
-    (Ack("f", "r", "scan", (1,)), lambda r: set_path(r, ("kind",), "map"), "kind"),
-    (Ack("f", "r", "scan", (1,)), lambda r: set_path(r, ("ids",), b"\x01\x02"), "ids"),
+    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("kind",), "map"), "kind"),
+    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("ids",), b"\x01\x02"), "ids"),
+    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("store",), "a/b"), "store"),
+    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("queued",), None), "queued"),
     (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("hi",), r["lo"]), "bbox"),
     (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("res",), 0.0), "resolution"),
     (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("robots",), ["ok", "no/slash"]), "robots"),
@@ -451,7 +455,7 @@ def test_fuzz_sees_only_protocol_errors():
 def test_rejection_round_trip_and_never_mistaken_for_an_ack():
     from protocol import Rejection
 
-    refusal = Rejection("f", "r", "scan", (3, 4), "quota", "robot r holds 512 MiB")
+    refusal = Rejection("f", "r", "s1", "scan", (3, 4), "quota", "robot r holds 512 MiB")
     assert decode(encode(refusal)) == refusal
     with pytest.raises(ProtocolError, match="type"):  # a receiver that waits for Acks drops it
         decode(encode(refusal), expect=Ack)
@@ -461,6 +465,29 @@ def test_rejection_round_trip_and_never_mistaken_for_an_ack():
         (dict(kind="map"), "kind"),
         (dict(ids=(-1,)), "ids"),
     ):
-        args = dict(fleet="f", robot="r", kind="scan", ids=(1,), reason="quota", detail="") | bad
+        args = dict(fleet="f", robot="r", store="s1", kind="scan", ids=(1,), reason="quota", detail="") | bad
         with pytest.raises(ProtocolError, match=field):
             Rejection(**args)
+
+
+def test_store_inventory_round_trip_and_ranges():
+    from protocol import StoreInventory
+
+    nodes = [0, 1, 2, 5, 7, 8, 9, 2**40]
+    inventory = StoreInventory.of("f", "r", "s1", nodes, revision=4)
+    assert inventory.ranges == ((0, 3), (5, 6), (7, 10), (2**40, 2**40 + 1))
+    assert decode(encode(inventory)) == inventory
+    assert [n in inventory for n in range(11)] == [n in nodes for n in range(11)] and 2**40 in inventory
+    assert len(inventory) == len(nodes)
+    assert decode(encode(StoreInventory.of("f", "r", "s1", []))).revision is None
+    for bad in (((3, 3),), ((0, 2), (2, 4)), ((5, 6), (0, 1))):  # empty, touching, unsorted
+        with pytest.raises(ProtocolError, match="ranges"):
+            StoreInventory("f", "r", "s1", bad)
+
+
+def test_a_version_1_message_is_refused_with_what_changed():
+    import msgpack
+
+    old = msgpack.packb({"v": 1, "t": 3, "f": "f", "r": "r", "kind": "scan", "ids": b""}, use_bin_type=True)
+    with pytest.raises(ProtocolError, match="version 2: acknowledgements name the store"):
+        decode(old)

@@ -141,7 +141,7 @@ def test_outbox_backs_off_exponentially_and_measures_round_trips_of_first_sendin
     assert due(0.5) == [] and due(1.5) == [1] and due(2.5) == [1, 2]
     box.mark_sent([("scan", 2)] * 6)  # 8 sendings: 128 s, but at most 16
     assert due(15.5) == [1] and due(16.5) == [1, 2]
-    trips = box.acknowledge("scan", (1, 2))
+    trips = box.acknowledge("scan", (1, 2), "s1")
     assert len(trips) == 1 and 0 <= trips[0] < 5  # scan 2 was sent more than once (Karn's rule)
     box.close()
 
@@ -154,7 +154,7 @@ def test_outbox_keeps_messages_until_acknowledged(tmp_path):
     box.mark_sent([("scan", 1), ("poses", 1)])
     assert box.due(time.time(), 1.0) == []
     assert [k for k, *_ in box.due(time.time() + 1.0, 1.0)] == ["scan", "poses"]
-    assert len(box.acknowledge("scan", (1, 7))) == 1  # one round trip: scan 1, sent once
+    assert len(box.acknowledge("scan", (1, 7), "s1")) == 1  # one round trip: scan 1, sent once
     assert box.pending() == 1 and box.acked("scan") == {1, 7}
     assert [box.next_revision(), box.next_revision()] == [1, 2]
     box.close()
