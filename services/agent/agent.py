@@ -12,6 +12,7 @@ finite source ends when the outbox is empty.
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import threading
 import time
@@ -37,7 +38,7 @@ from protocol import (
     scan_key,
 )
 from services.config import GmmapConfig, summary
-from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
+from services.datasets.keyframes import KeyframeConfig, KeyframeFilter, turned
 from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
@@ -70,6 +71,7 @@ class Agent:
         self.unsent = 0  # scans not published because of a refusal
         self.kept = 0  # nodes of publish_all's source that the keyframe policy kept
         self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
+        self._sent_poses: dict[int, Pose] = {}  # node -> the corrected pose last sent in an update
         self.store: str | None = None  # the store this agent reports to, from its inventory
         self.requeued: dict[
             str, int
@@ -270,14 +272,31 @@ class Agent:
             node = 0 if last is None else last + 1
         return node if self._send_scan(node, points, no_return, pose, stamp) else None
 
-    def correct(self, poses: Mapping[int, Pose], anchor: Pose | None = None) -> int:
+    def correct(self, poses: Mapping[int, Pose], anchor: Pose | None = None) -> int | None:
         """Send a pose-graph update: corrected sensor poses of earlier nodes (and where the robot's
-        map frame sits in the fleet's world, if known); returns its revision."""
+        map frame sits in the fleet's world, if known); returns its revision, or None when no pose
+        moved by more than `pose_tolerance` since it was last sent and there is no anchor.
+
+        Only the nodes that moved go out (protocol v2 applies updates node by node), so the cost of
+        a correction follows what it changed, not the length of the mission.
+        """
         o = self.options
-        update = PoseGraphUpdate(o.fleet, o.robot, 0, tuple(poses.items()), anchor)  # checked before numbering
+        moved = {node: pose for node, pose in poses.items() if self._moved(node, pose)}
+        if not moved and anchor is None:
+            return None
+        update = PoseGraphUpdate(o.fleet, o.robot, 0, tuple(moved.items()), anchor)  # checked before numbering
         revision = self.outbox.next_revision()  # increasing across runs of this outbox
         self.send("poses", revision, poses_key(o.fleet, o.robot), encode(replace(update, revision=revision)))
+        self._sent_poses.update(moved)
         return revision
+
+    def _moved(self, node: int, pose: Pose) -> bool:
+        """Whether `pose` differs from the one last sent for `node` by more than the tolerance."""
+        sent = self._sent_poses.get(node)
+        tolerance = self.options.pose_tolerance
+        if sent is None:
+            return True
+        return bool(np.linalg.norm(pose.t - sent.t) > tolerance or math.radians(turned(sent, pose)) > tolerance)
 
     def flush(self, timeout: float) -> int:
         """Wait until everything sent is acknowledged, at most `timeout` s; returns what is still held
@@ -325,11 +344,9 @@ class Agent:
                 if delivered and node.corrected is not None:
                     corrected[node.node] = node.corrected
             if corrected and o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
-                self.correct(corrected)
-                updates += 1
+                updates += self.correct(corrected) is not None
         if corrected:  # and once at the end, as a back end closing its graph would
-            self.correct(corrected)
-            updates += 1
+            updates += self.correct(corrected) is not None
         return updates
 
     def wait_acknowledged(self, timeout: float) -> int:

@@ -34,6 +34,9 @@ class AgentConfig:
     # MiB of acknowledged messages the outbox keeps, oldest forgotten first, so that a server that
     # lost them (a fresh data directory, a restored backup) gets them again; 0: forget at once.
     keep_acked_mb: float = 256.0
+    # m, and rad: a node's corrected pose goes out again only once it moved or turned more than this
+    # since the pose last sent for it (pose-graph updates carry what changed)
+    pose_tolerance: float = 1e-3
 
     def __post_init__(self):
         if self.robot is not None:
@@ -45,6 +48,7 @@ class AgentConfig:
         require_number("agent.resend_s", self.resend_s, positive=True)
         require_number("agent.timeout", self.timeout, positive=False)
         require_number("agent.keep_acked_mb", self.keep_acked_mb, positive=False)
+        require_number("agent.pose_tolerance", self.pose_tolerance, positive=False)
         if self.update_every is not None:
             require_count("agent.update_every", self.update_every, minimum=0)
         if not self.zenoh_connect:
