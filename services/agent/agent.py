@@ -82,6 +82,9 @@ class Agent:
         self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
         self._rttvar = 0.0
         self._stop = threading.Event()
+        self._room = threading.Event()  # set by Acks: the resender refills the window
+        self._last_heard = 0.0  # time.time() of the server's last answer
+        self._acked_sent = 0.0  # when the latest-sent acknowledged message was sent
         self._connector = threading.Thread(target=self._connect, args=(config,), name="gmmap-connect", daemon=True)
         self._resender = threading.Thread(target=self._resend_loop, name="gmmap-resend", daemon=True)
         self._connector.start()
@@ -157,31 +160,46 @@ class Agent:
 
     # -- sending -------------------------------------------------------------------------------
     def send(self, kind: str, ident: int, key: str, raw: bytes) -> None:
-        self.outbox.add(kind, ident, key, raw)  # committed first: a crash from here on resends it
-        self._publish([(kind, ident, key, raw)])
+        """Keep the message (committed first: a crash from here on resends it) and publish what the
+        window allows; the rest waits in the outbox for Acks to make room."""
+        self.outbox.add(kind, ident, key, raw)
+        self._fill_window()
+
+    def _fill_window(self) -> None:
+        """Publish unsent messages while fewer than `window` are unanswered (flow control: a server
+        that falls behind gets no more than it can queue, and the outbox holds the rest)."""
+        with self._send_lock:
+            room = self.options.window - self.outbox.in_flight()
+            if room > 0:
+                self._publish(self.outbox.unsent(room))
 
     def _publish(self, items) -> None:
+        """Put `items` on the wire (caller holds the send lock)."""
         session = self.session
-        if session is None:
-            return  # offline: the resender sends it once connected
-        with self._send_lock:
-            for _, _, key, raw in items:
-                # BLOCK: wait for room in the link's queue rather than drop a scan.
-                session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
-            self.outbox.mark_sent([(kind, ident) for kind, ident, _, _ in items])
+        if session is None or not items:
+            return  # offline: sent once connected
+        for _, _, key, raw in items:
+            # BLOCK: wait for room in the link's queue rather than drop a scan.
+            session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.outbox.mark_sent([(kind, ident) for kind, ident, _, _ in items])
 
     def _resend_loop(self) -> None:
-        while not self._stop.wait(self.options.resend_s / 2):
+        while not self._stop.is_set():
+            self._room.wait(self.options.resend_s / 2)  # an Ack made room, or time to look again
+            self._room.clear()
             if self.session is None:
                 continue
             if self._store_changed.is_set():
                 self._store_changed.clear()
                 if not self.reconcile():
                     self._store_changed.set()  # no store answered yet: ask again next round
-            due = self.outbox.due(time.time(), self.resend_timeout())
-            if due:
-                log.info("sending %d unacknowledged messages again", len(due))
-                self._publish(due)
+            now, timeout = time.time(), self.resend_timeout()
+            with self._send_lock:
+                due = self.outbox.due(now, timeout, now - self._last_heard >= timeout, self._acked_sent)
+                if due:
+                    log.info("sending %d unacknowledged messages again", len(due))
+                    self._publish(due)
+            self._fill_window()
 
     def resend_timeout(self) -> float:
         """Seconds an unanswered message waits before its second sending."""
@@ -206,6 +224,7 @@ class Agent:
             return
         if answer.robot != self.options.robot or answer.fleet != self.options.fleet:
             return
+        self._last_heard = time.time()
         if isinstance(answer, Rejection):  # refused for good: stop resending, report at the end
             if self.outbox.reject(answer.kind, answer.ids, answer.reason, answer.detail):
                 log.error(
@@ -219,8 +238,13 @@ class Agent:
         else:
             if answer.store != self.store:  # a restarted server on a new data dir, or another server
                 self._store_changed.set()
-            for round_trip in self.outbox.acknowledge(answer.kind, answer.ids, answer.store):
+            round_trips, latest = self.outbox.acknowledge(answer.kind, answer.ids, answer.store)
+            for round_trip in round_trips:
                 self._measured(round_trip)
+            self._acked_sent = max(self._acked_sent, latest)
+            if answer.queued:  # received and queued by a busy server: not lost, wait for it
+                self.outbox.mark_sent([(answer.kind, i) for i in answer.queued], again=False)
+        self._room.set()
         with self._changed:
             self._changed.notify_all()
 
@@ -364,6 +388,7 @@ class Agent:
 
     def close(self) -> None:
         self._stop.set()
+        self._room.set()
         self._resender.join()
         with self._session_lock:
             connected = self.session is not None

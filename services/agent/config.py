@@ -29,6 +29,7 @@ class AgentConfig:
     encoding: str = "q"  # wire encoding of scans, one of protocol.ENCODINGS
     update_every: int | None = None  # scans between pose-graph updates (0: at the end); None: the source's
     odometry_only: bool = False  # with corrections: the matched scans, but no pose-graph updates
+    window: int = 128  # messages published and not yet answered, at most; the outbox holds the rest
     resend_s: float = 1.0  # s, least time before resending what is unacknowledged (grows with the Ack RTT)
     timeout: float = 120.0  # s to wait for the last Acks once everything is published
     # MiB of acknowledged messages the outbox keeps, oldest forgotten first, so that a server that
@@ -46,6 +47,7 @@ class AgentConfig:
             raise ValueError(f"agent.encoding: must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
         require_number("agent.rate", self.rate, positive=False)
         require_number("agent.resend_s", self.resend_s, positive=True)
+        require_count("agent.window", self.window, minimum=1)
         require_number("agent.timeout", self.timeout, positive=False)
         require_number("agent.keep_acked_mb", self.keep_acked_mb, positive=False)
         require_number("agent.pose_tolerance", self.pose_tolerance, positive=False)

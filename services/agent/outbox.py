@@ -75,21 +75,24 @@ class Outbox:
             self._db.execute("INSERT OR REPLACE INTO outbox VALUES (?, ?, ?, ?, 0, 0)", (kind, ident, key, raw))
             self._db.execute("DELETE FROM rejected WHERE kind = ? AND id = ?", (kind, ident))  # a new attempt
 
-    def mark_sent(self, items: list[tuple[str, int]]) -> None:
+    def mark_sent(self, items: list[tuple[str, int]], again: bool = True) -> None:
+        """The messages were sent now (again=False: heard of now, their resend timer restarts)."""
         with self._lock, self._db:
             self._db.executemany(
-                "UPDATE outbox SET sent = ?, attempts = attempts + 1 WHERE kind = ? AND id = ?",
-                [(time.time(), kind, ident) for kind, ident in items],
+                f"UPDATE outbox SET sent = ?, attempts = attempts + {int(again)} WHERE kind = ? AND id = ? "
+                "AND (? OR attempts > 0)",
+                [(time.time(), kind, ident, again) for kind, ident in items],
             )
 
-    def acknowledge(self, kind: str, ids: tuple[int, ...], store: str) -> list[float]:
+    def acknowledge(self, kind: str, ids: tuple[int, ...], store: str) -> tuple[list[float], float]:
         """Move acknowledged messages to `acked` (bytes kept, up to keep_bytes); returns the round-trip
-        times (s) of those sent exactly once.
+        times (s) of those sent exactly once, and the latest time one of them was sent (0 if none).
 
         A message sent more than once says nothing about the round trip: its Ack may answer
         either sending (Karn's rule).
         """
         now = time.time()
+        latest = 0.0
         with self._lock, self._db:
             round_trips = []
             for i in ids:
@@ -105,6 +108,7 @@ class Outbox:
                     continue
                 if row[1] == 1:
                     round_trips.append(now - row[0])
+                latest = max(latest, row[0])
                 raw = row[3] if self.keep_bytes > 0 else None
                 self._db.execute(
                     "INSERT OR REPLACE INTO acked VALUES (?, ?, ?, ?, ?, ?)", (kind, i, now, store, row[2], raw)
@@ -113,7 +117,7 @@ class Outbox:
             self._db.executemany("DELETE FROM rejected WHERE kind = ? AND id = ?", [(kind, i) for i in ids])
             if self._retained > self.keep_bytes:
                 self._forget_oldest()
-        return round_trips
+        return round_trips, latest
 
     def _forget_oldest(self) -> None:
         """Drop the bytes of the oldest acknowledged messages down to 90% of keep_bytes (lock held)."""
@@ -178,18 +182,33 @@ class Outbox:
         with self._lock:
             return {i for (i,) in self._db.execute("SELECT id FROM outbox WHERE kind = ?", (kind,))}
 
-    def due(self, now: float, timeout: float) -> list[tuple[str, int, str, bytes]]:
-        """Messages to send again at `now` (epoch s), oldest first: never sent, or unanswered for
-        `timeout` s after their first sending, doubling after each further one (MAX_DOUBLINGS times).
+    def unsent(self, limit: int) -> list[tuple[str, int, str, bytes]]:
+        """Up to `limit` messages never sent yet, scans first, oldest first."""
+        with self._lock:
+            return self._db.execute(
+                "SELECT kind, id, key, raw FROM outbox WHERE attempts = 0 ORDER BY kind DESC, id LIMIT ?", (limit,)
+            ).fetchall()
 
-        The back-off keeps a busy server from being buried in copies of what it is still storing;
-        its cap keeps a server that comes back after an outage from waiting long for the rest.
+    def in_flight(self) -> int:
+        """Messages sent and not answered yet."""
+        with self._lock:
+            return self._db.execute("SELECT COUNT(*) FROM outbox WHERE attempts > 0").fetchone()[0]
+
+    def due(self, now: float, timeout: float, silent: bool, passed: float) -> list[tuple[str, int, str, bytes]]:
+        """Sent messages to send again at `now` (epoch s), oldest first: unanswered for `timeout` s
+        after their first sending, doubling after each further one (MAX_DOUBLINGS times), and either
+        the server is `silent` or it acknowledged a message sent after them (sent at `passed`), so
+        they were lost, not merely queued behind others.
+
+        A server that is slow but answering is left to work through its queue: resending would only
+        deepen it. The back-off's cap keeps a server that comes back after an outage from waiting
+        long for the rest.
         """
         with self._lock:
             return self._db.execute(
-                "SELECT kind, id, key, raw FROM outbox WHERE attempts = 0 OR "
-                "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? ORDER BY sent, kind DESC, id",
-                (timeout, MAX_DOUBLINGS, now),
+                "SELECT kind, id, key, raw FROM outbox WHERE attempts > 0 AND "
+                "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? AND (? OR sent < ?) ORDER BY sent, kind DESC, id",
+                (timeout, MAX_DOUBLINGS, now, silent, passed),
             ).fetchall()
 
     def pending(self) -> int:

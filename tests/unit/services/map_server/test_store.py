@@ -9,7 +9,6 @@ import pytest
 
 from gmm_core import Pose, fit_scan
 from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key
-from services.agent.outbox import Outbox
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
@@ -128,38 +127,3 @@ def test_a_correction_that_arrives_before_its_scan_is_applied_to_it(tmp_path, mo
     restarted = ServerState("default", FleetMap("default"), Store(tmp_path))
     assert Ingest(restarted, lambda *_: None).replay() == 2
     assert restarted.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
-
-
-def test_outbox_backs_off_exponentially_and_measures_round_trips_of_first_sendings(tmp_path):
-    box = Outbox(tmp_path / "o.db", "default", "r")
-    box.add("scan", 1, "k1", b"one")
-    box.add("scan", 2, "k2", b"two")
-    box.mark_sent([("scan", 1), ("scan", 2)])
-    box.mark_sent([("scan", 2)])  # a second sending: due again after 2 s, then 4 s, ... up to 16 s
-    sent = time.time()
-    due = lambda after: [i for _, i, _, _ in box.due(sent + after, 1.0)]  # noqa: E731
-    assert due(0.5) == [] and due(1.5) == [1] and due(2.5) == [1, 2]
-    box.mark_sent([("scan", 2)] * 6)  # 8 sendings: 128 s, but at most 16
-    assert due(15.5) == [1] and due(16.5) == [1, 2]
-    trips = box.acknowledge("scan", (1, 2), "s1")
-    assert len(trips) == 1 and 0 <= trips[0] < 5  # scan 2 was sent more than once (Karn's rule)
-    box.close()
-
-
-def test_outbox_keeps_messages_until_acknowledged(tmp_path):
-    box = Outbox(tmp_path / "o.db", "default", "r")
-    box.add("scan", 1, "k1", b"one")
-    box.add("poses", 1, "kp", b"graph")
-    assert [(k, i) for k, i, _, _ in box.due(time.time(), 1.0)] == [("scan", 1), ("poses", 1)]  # scans first
-    box.mark_sent([("scan", 1), ("poses", 1)])
-    assert box.due(time.time(), 1.0) == []
-    assert [k for k, *_ in box.due(time.time() + 1.0, 1.0)] == ["scan", "poses"]
-    assert len(box.acknowledge("scan", (1, 7), "s1")) == 1  # one round trip: scan 1, sent once
-    assert box.pending() == 1 and box.acked("scan") == {1, 7}
-    assert [box.next_revision(), box.next_revision()] == [1, 2]
-    box.close()
-    box = Outbox(tmp_path / "o.db", "default", "r")  # what is unacknowledged survives a restart
-    assert box.pending() == 1 and box.next_revision() == 3
-    box.close()
-    with pytest.raises(ValueError, match="belongs to default/r"):
-        Outbox(tmp_path / "o.db", "default", "other")
