@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import socket
@@ -21,6 +22,16 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
+
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the parent dies, even by SIGKILL (Linux
+    PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no server tracing on."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+PR_SET_PDEATHSIG = 1
 
 # A simulated robot publishes every scan (no keyframe policy), so load and bandwidth figures compare.
 EVERY_SCAN = ("--keyframe-distance", "0", "--keyframe-angle", "0", "--keyframe-period", "0")
@@ -58,6 +69,7 @@ class Processes:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
+                preexec_fn=_die_with_parent,
             )
         self.running[name] = proc
         return proc

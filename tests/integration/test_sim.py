@@ -203,3 +203,51 @@ def test_demo_serves_the_viewer_and_stops_after_its_duration(tmp_path):
         if demo.poll() is None:
             demo.kill()
             demo.wait()
+
+
+def children_of(pid: int) -> list[int]:
+    """Processes whose parent is `pid` (from /proc)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found.append(int(entry))
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_sim_killed_with_sigkill_leaves_no_process_behind(tmp_path):
+    sim = subprocess.Popen(
+        [*GMMAP, "sim", "--robots", "2", "--duration", "120", "--rate", "2"],
+        cwd=tmp_path,
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while len(children := children_of(sim.pid)) < 2:  # the server and the robots' process
+            assert time.monotonic() < deadline and sim.poll() is None, "the sim did not start its children"
+            time.sleep(0.2)
+        sim.kill()
+        sim.wait()
+        deadline = time.monotonic() + 15
+        while any(alive(pid) for pid in children):
+            assert time.monotonic() < deadline, [pid for pid in children if alive(pid)]
+            time.sleep(0.2)
+    finally:
+        if sim.poll() is None:
+            sim.kill()
