@@ -37,7 +37,12 @@ def graded_auroc(prob: np.ndarray, truth: np.ndarray, observed: np.ndarray) -> f
 
 
 def wire_figures(record: RunRecord) -> tuple[dict, dict, dict]:
-    """Per robot: payload bytes and messages by kind; first-seen time of each scan; ingest lags."""
+    """Per robot: payload bytes and messages by kind; first-seen time of each scan; ingest lags.
+
+    A scan's ingest lag runs from when its sensor took it to its Ack: the robot's scan k is taken
+    k / rate after its first (as the agent schedules them), so time a scan spent held back in an
+    outbox counts, not only its time on the wire and in the server's queue.
+    """
     by_robot: dict[str, dict] = defaultdict(lambda: defaultdict(lambda: [0, 0]))  # kind -> [messages, bytes]
     seen: dict[tuple[str, int], float] = {}
     acked: dict[tuple[str, int], float] = {}
@@ -50,7 +55,13 @@ def wire_figures(record: RunRecord) -> tuple[dict, dict, dict]:
         elif e.kind == "ack" and e.acked == "scan":
             for node in e.ids:
                 acked.setdefault((e.robot, node), e.t)
-    lags = {key: acked[key] - t for key, t in seen.items() if key in acked}
+    first = {}  # robot -> (node, seen) of its first scan
+    for (robot, node), t in seen.items():
+        if robot not in first or node < first[robot][0]:
+            first[robot] = (node, t)
+    rate = record.options.rate
+    taken = {(r, n): first[r][1] + (n - first[r][0]) / rate for r, n in seen}
+    lags = {key: acked[key] - t for key, t in taken.items() if key in acked}
     return by_robot, seen, lags
 
 
@@ -149,6 +160,8 @@ def grade(record: RunRecord) -> Grading:
         bytes_on_wire=total("bytes_on_wire"),
         bytes_on_wire_down=total("bytes_on_wire_down"),
         payload_bytes={k: sum(r.payload_bytes[k] for r in robots.values()) for k in ("scan", "poses", "ack")},
+        scan_payload_bytes=sum(r.payload_bytes["scan"] for r in robots.values()),
+        pose_payload_bytes=sum(r.payload_bytes["poses"] for r in robots.values()),
         framing_bytes_per_message=(total("bytes_on_wire") - payload_up) / messages_up if messages_up else None,
         raw_scan_bytes=total("raw_scan_bytes"),
         grid_delta_bytes=total("grid_delta_bytes"),

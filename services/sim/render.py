@@ -32,9 +32,10 @@ at the server nor in the robot's estimate). `auroc_before_correction` is the odo
 A 2D world is graded whole; a 3D one in the box of the robots' paths grown by 8 m (3 m up and
 down), and its grid deltas are counted in that box only (fewer than a robot would send).
 
-Times. Ingest lag: per scan, from when a Zenoh client on the server (the tap) sees it to when
-the tap sees the server's Ack of it, so both ends are at the server (an Ack is sent express and
-may overtake by a millisecond: a few lags are slightly negative). Tile latency: HTTP round trips
+Times. Ingest lag: per scan, from when its sensor took it to when a Zenoh client on the server
+(the tap) sees the server's Ack of it. A robot's scan k is taken k / rate after its first, which
+the tap saw; so a scan held back in the robot's outbox (flow control) lags by the time it waited
+there, not only by its time in the server's queue. Tile latency: HTTP round trips
 of the `--http-clients`, each fetching random 256 x 256 PNG tiles of the viewer's tiling. Faster
 than real time: simulated seconds x cores / CPU seconds of the server and agent processes (the
 harness's relays, tap and map fetches are not counted; the server's answers to them are).

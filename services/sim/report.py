@@ -60,6 +60,8 @@ class SimReport:
     bytes_on_wire: int
     bytes_on_wire_down: int
     payload_bytes: dict[str, int]
+    scan_payload_bytes: int  # payload_bytes["scan"], flat for scripts
+    pose_payload_bytes: int  # payload_bytes["poses"]
     framing_bytes_per_message: float | None
     raw_scan_bytes: int
     grid_delta_bytes: int

@@ -39,6 +39,8 @@ REPORT_KEYS = {
     "scans_stored",
     "ingest_lag_p99_s",
     "tile_latency_p99_s",
+    "scan_payload_bytes",
+    "pose_payload_bytes",
 }
 
 
@@ -161,7 +163,8 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
     assert REPORT_KEYS <= report.keys()
     assert report["robots"] == 2 and report["duration_s"] == 6
     assert report["scans_published"] == report["scans_stored"] == 60
-    assert report["bytes_on_wire"] > report["payload_bytes"]["scan"] > 0
+    assert report["bytes_on_wire"] > report["payload_bytes"]["scan"] == report["scan_payload_bytes"] > 0
+    assert report["pose_payload_bytes"] == report["payload_bytes"]["poses"] > 0
     assert report["bytes_on_wire"] < report["raw_scan_bytes"] == 60 * 360 * 4
     assert report["grid_delta_bytes"] > 0 and report["components"] > 0
     assert report["auroc"] > 0.8 and report["auroc_before_correction"] > 0.5
