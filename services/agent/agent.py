@@ -77,6 +77,7 @@ class Agent:
             str, int
         ] = {}  # {store that had acknowledged them: messages sent again} as the store lacked them
         self.lost: set[int] = set()  # acknowledged nodes the store lacks and whose bytes are gone: refit
+        self.refitted = 0  # of those, fitted again from the source
         self._reconciled = threading.Event()  # set once the store's inventory was compared with the outbox
         self._store_changed = threading.Event()  # an Ack named another store: compare again
         self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
@@ -332,6 +333,9 @@ class Agent:
             self.unsent += 1
             return False
         o = self.options
+        if node in self.lost:
+            self.lost.discard(node)
+            self.refitted += 1
         model = fit_scan(points, no_return, self.fit.for_dimension(pose.dim))
         message = ScanMessage(o.fleet, o.robot, node, stamp, model, pose)
         self.send("scan", node, scan_key(o.fleet, o.robot, node), encode(message, o.encoding))
@@ -372,6 +376,18 @@ class Agent:
         if corrected:  # and once at the end, as a back end closing its graph would
             updates += self.correct(corrected) is not None
         return updates
+
+    def refit(self, nodes: Sequence[Node] | SimulatedNodes) -> int:
+        """Fit and send again the nodes the store lacks whose bytes the outbox no longer keeps
+        (found after publish_all passed them); returns how many."""
+        if not self.lost:
+            return 0
+        held = self.outbox.held("scan")
+        again = [n for n in nodes if n.node in self.lost and n.node not in held]
+        for node in again:
+            scan = node.scan
+            self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+        return len(again)
 
     def wait_acknowledged(self, timeout: float) -> int:
         """Block until a store's inventory was compared with the outbox and the outbox is empty, or
@@ -415,14 +431,16 @@ def _points(name: str, a, dim: int) -> np.ndarray:
 
 
 def _requeued(agent: Agent) -> str:
-    if not agent.requeued and not agent.lost:
+    """What the store lacked of what earlier stores acknowledged, for the summary line."""
+    parts = [f"sent again {n} acknowledged by store {s or '(unnamed, protocol v1)'}" for s, n in agent.requeued.items()]
+    if agent.refitted:
+        parts.append(f"{agent.refitted} scans no longer kept were fitted again")
+    if agent.lost:
+        parts.append(f"{len(agent.lost)} scans no longer kept are lost")
+    if not parts:
         return ""
-    earlier = ", ".join(
-        f"{n} acknowledged by store {store or '(unnamed, protocol v1)'}" for store, n in agent.requeued.items()
-    )
-    refit = f"; {len(agent.lost)} scans no longer kept were fitted again" if agent.lost else ""
-    lacked = sum(agent.requeued.values()) + len(agent.lost)
-    return f" (the store lacked {lacked} acknowledged messages: sent again {earlier}{refit})"
+    lacked = sum(agent.requeued.values()) + agent.refitted + len(agent.lost)
+    return f" (the store lacked {lacked} acknowledged messages: {'; '.join(parts)})"
 
 
 def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
@@ -444,6 +462,8 @@ def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
         agent.wait_reconciled(min(o.timeout, 5.0))
         with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:
             updates = agent.publish_all(nodes, bar.update)
+        if agent.wait_reconciled(o.timeout):  # a store that answered late may lack what is no longer kept
+            agent.refit(nodes)
         published = time.perf_counter()
         pending = agent.wait_acknowledged(o.timeout)
         if pending:

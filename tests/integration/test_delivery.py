@@ -62,3 +62,16 @@ def test_a_server_restored_from_an_old_backup_gets_the_rest_again(procs, data_di
     summary = procs.log(agent).strip().splitlines()[-1]
     lacked = re.search(r"the store lacked (\d+) acknowledged messages", summary)
     assert lacked and int(lacked[1]) >= 30, summary  # scans 20-49, and the pose-graph updates after the backup
+
+
+def test_what_the_outbox_no_longer_keeps_is_fitted_again_from_the_source(procs, data_dir, tmp_path):
+    zport, hport = free_port(), free_port()
+    procs.server("server-1", tmp_path / "one", zport, hport)
+    agent = procs.agent("a", zport, data_dir, "--scans", "0:30", "--timeout", "60", "--keep-acked-mb", "0")
+    assert procs.finish(agent, 120) == 0, procs.log(agent)
+    assert procs.stop("server-1") == 0
+    procs.server("server-2", tmp_path / "two", zport, hport)  # a fresh store; the outbox kept no bytes
+    agent = procs.agent("a", zport, data_dir, "--scans", "0:30", "--timeout", "60", "--keep-acked-mb", "0")
+    assert procs.finish(agent, 120) == 0, procs.log(agent)
+    assert stored_nodes(tmp_path / "two", "a") == set(range(30))
+    assert "30 scans no longer kept were fitted again" in procs.log(agent).strip().splitlines()[-1]
