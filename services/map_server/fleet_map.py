@@ -65,10 +65,9 @@ class FleetMap:
             return self._nodes.add(msg, size_bytes)
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
-        """Re-pose nodes (Eq. 2 at query time); False if the revision is older than the held one.
-
-        An update with the held revision is applied too: a large revision may come in parts.
-        """
+        """Re-pose nodes (Eq. 2 at query time), node by node: a listed node takes the update's pose
+        unless a newer revision set it (an equal one may be another part), the anchor likewise.
+        False if the update changed nothing."""
         with self._lock:
             return self._nodes.apply(update)
 

@@ -181,7 +181,9 @@ class Ingest:
             state.fleet_map.apply_poses(update)
         state.metrics.accepted.labels("poses").inc()
         state.metrics.bytes_received.labels(update.robot).inc(len(payload))
-        self._ack(update.robot, "poses", [update.revision])  # an older revision is acked as superseded
+        # Acked even when it changed nothing (a resend, or every node it lists set by a newer revision):
+        # it is held, as far as it will ever be, so the robot must stop resending it.
+        self._ack(update.robot, "poses", [update.revision])
 
     def _ack(self, robot: str, kind: str, ids: list[int]) -> None:
         self._send(robot, Ack(self.state.fleet, robot, self.state.store.identity, kind, tuple(ids)))

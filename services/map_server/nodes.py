@@ -18,6 +18,8 @@ from gmm_core import Grid, Pose, ScanModel
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
 
+from .pose_graph import PoseGraph
+
 CHANGE_LOG_LIMIT = 1 << 20  # entries (8 bytes each) kept for tiles that are not asked for again
 
 
@@ -31,8 +33,8 @@ class NodeKey(NamedTuple):
 class Stamp(NamedTuple):
     """Changes whenever a node's world pose may have: equal stamps, equal poses."""
 
-    pose_rev: int  # the node's corrections so far
-    anchor_rev: int  # its robot's anchor changes so far
+    pose_changes: int  # of the node's corrected pose so far
+    anchor_changes: int  # of its robot's anchor so far
 
 
 def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
@@ -71,8 +73,8 @@ class Node:
     seed: int  # of its samples: scan_seed(robot, node)
     local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
     local_hi: np.ndarray
-    corrected: Pose | None = None  # from the newest pose-graph update
-    pose_rev: int = 0  # bumped whenever `corrected` changes
+    corrected: Pose | None = None  # from the newest pose-graph revision that listed the node
+    pose_changes: int = 0  # bumped whenever `corrected` changes
 
     @property
     def map_pose(self) -> Pose:
@@ -94,19 +96,28 @@ class Robot:
     """One robot's nodes, its pose graph's corrections and anchor, and what the API reports of it."""
 
     nodes: dict[int, Node] = field(default_factory=dict)
-    pending: dict[int, Pose] = field(default_factory=dict)  # corrections for nodes not received yet
-    anchor: Pose | None = None  # robot map frame -> world
-    anchor_rev: int = 0  # bumped whenever `anchor` changes
-    revision: int = -1  # of the newest pose-graph update applied
+    # Corrections by revision, of held nodes and of those whose scan is still on the way, and the anchor.
+    graph: PoseGraph = field(default_factory=PoseGraph)
+    anchor_changes: int = 0  # bumped whenever the anchor changes
     bytes_received: int = 0  # wire bytes of its scans
     last_seen: float = 0.0  # time.time() of its newest message
     components: int = 0  # of all its scan models
+
+    @property
+    def anchor(self) -> Pose | None:
+        """Robot map frame -> world."""
+        return self.graph.anchor
+
+    @property
+    def revision(self) -> int:
+        """The newest pose-graph revision applied; -1 before any."""
+        return self.graph.revision
 
     def world_pose(self, node: Node) -> Pose:
         return self.anchor.compose(node.map_pose) if self.anchor is not None else node.map_pose
 
     def posed(self, node: Node) -> Posed:
-        return Posed(node.key, Stamp(node.pose_rev, self.anchor_rev), node, self.world_pose(node))
+        return Posed(node.key, Stamp(node.pose_changes, self.anchor_changes), node, self.world_pose(node))
 
 
 class NodeIndex:
@@ -213,7 +224,7 @@ class NodeStore:
             scan_seed(msg.robot, msg.node),
             lo,
             hi,
-            corrected=robot.pending.pop(msg.node, None),
+            corrected=robot.graph.pose(msg.node),  # a correction that came before its scan
         )
         robot.nodes[msg.node] = node
         robot.components += msg.model.n_components
@@ -224,38 +235,30 @@ class NodeStore:
         return True
 
     def apply(self, update: PoseGraphUpdate) -> bool:
-        """Re-pose nodes (Eq. 2 at query time); False if the revision is older than the held one.
+        """Re-pose nodes (Eq. 2 at query time), node by node: each listed node that no newer revision
+        set takes its pose, the anchor likewise (pose_graph.PoseGraph.apply). True if anything changed.
 
-        An update with the held revision is applied too: a large revision may come in parts.
+        Only the nodes whose world pose changed are moved (logged, re-indexed, their tiles marked).
         """
-        if self.dim is not None and any(p.dim != self.dim for _, p in update.poses):
+        if self.dim is not None and update.dim != self.dim:
             raise ValueError(f"poses: this map is {self.dim}D")
         robot = self.robots.setdefault(update.robot, Robot())
         robot.last_seen = time.time()
-        if update.revision < robot.revision:
-            return False
-        if update.anchor is not None:
-            moved = list(robot.nodes.values())  # a new anchor moves every node of the robot
-            robot.anchor, old_anchor = update.anchor, robot.anchor
-            robot.anchor_rev += 1
-        else:
-            moved, old_anchor = [], robot.anchor
+        old_anchor = robot.anchor
+        applied = robot.graph.apply(update)
+        moved = list(robot.nodes.values()) if applied.anchor_moved else []  # an anchor moves the whole robot
+        robot.anchor_changes += applied.anchor_moved
         old_poses = {n.key: n.map_pose for n in moved}
-        for node_id, pose in update.poses:
+        for node_id in applied.moved:
             node = robot.nodes.get(node_id)
-            if node is None:
-                robot.pending[node_id] = pose  # its scan is still on the way
-            elif node.corrected is None or not (
-                np.array_equal(node.corrected.R, pose.R) and np.array_equal(node.corrected.t, pose.t)
-            ):
+            if node is not None:  # else its scan is still on the way: `add` takes the correction
                 old_poses.setdefault(node.key, node.map_pose)
-                node.corrected = pose
-                node.pose_rev += 1
+                node.corrected = robot.graph.pose(node_id)
+                node.pose_changes += 1
                 moved.append(node)
-        robot.revision = update.revision
         moved = list({n.key: n for n in moved}.values())
         if not moved:
-            return True
+            return applied.changed
         lo = np.array([n.local_lo for n in moved])
         hi = np.array([n.local_hi for n in moved])
         old_lo, old_hi = world_boxes([old_poses[n.key] for n in moved], lo, hi, old_anchor)
@@ -264,7 +267,7 @@ class NodeStore:
         self._index.put(keys, new_lo, new_hi)
         self.log.extend(keys)
         self._moved(np.concatenate([old_lo, new_lo]), np.concatenate([old_hi, new_hi]))
-        return True
+        return applied.changed
 
     def check_dim(self, grid: Grid) -> None:
         if self.dim is not None and grid.dim != self.dim:

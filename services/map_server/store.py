@@ -3,8 +3,10 @@
 SQLite in WAL mode, one file `gmmap.db` in the data directory. Scans are kept as the bytes
 received (the codec is the schema), so a restart decodes exactly what the robots sent and the
 same query gives the same bytes. Per robot, the pose graph is kept as one encoded
-PoseGraphUpdate: the newest revision, merged with the node poses and anchor of older ones
-(an update lists only the nodes it moves; the others keep their last pose).
+PoseGraphUpdate at the newest revision applied, holding every node's pose and the anchor (an
+update lists only the nodes it moves; the others keep their last pose), beside the revision
+that set each of them: updates are applied node by node (pose_graph.PoseGraph), and a restart
+must judge a late update exactly as the live server did.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from pathlib import Path
 
 from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode, encode
 
+from .pose_graph import PoseGraph
+
 DB_NAME = "gmmap.db"
 
 SCHEMA = """
@@ -31,17 +35,25 @@ CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS poses (
     fleet TEXT NOT NULL, robot TEXT NOT NULL, revision INTEGER NOT NULL,
     received REAL NOT NULL, raw BLOB NOT NULL,
+    node_revisions BLOB, anchor_revision INTEGER,
     PRIMARY KEY (fleet, robot)
 ) WITHOUT ROWID;
 """
+# Columns added to `poses` since the first schema, as a store made before them lacks them.
+POSES_ADDED = {
+    # Revision of each pose of `raw`, in its order: u64 little-endian. NULL: every node at the row's
+    # revision (a row written before this column, or an update that makes the whole graph, kept as sent).
+    "node_revisions": "BLOB",
+    "anchor_revision": "INTEGER",  # of raw's anchor; NULL: the row's revision (or no anchor)
+}
 
 
 @dataclass(frozen=True)
 class Stored:
-    """One record a restart replays: a scan (with its wire size) or a robot's pose graph."""
+    """One record a restart replays: a scan (with its wire size) or one revision of a robot's pose graph."""
 
     message: ScanMessage | PoseGraphUpdate
-    size: int
+    size: int  # of a scan, as received; 0 for a pose graph's revision (rebuilt, never sent as such)
 
 
 class Store:
@@ -65,11 +77,15 @@ class Store:
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute("PRAGMA busy_timeout=5000")  # readers in other processes (tests, tools)
         self._db.executescript(SCHEMA)
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(poses)")}
+        for name, kind in POSES_ADDED.items():
+            if name not in columns:
+                self._db.execute(f"ALTER TABLE poses ADD COLUMN {name} {kind}")
         # The store's identity, made once with the data directory: Acks name it, so a robot can tell
         # this store from another (a fresh data directory, a restored backup) and resend what it lacks.
         self._db.execute("INSERT OR IGNORE INTO meta VALUES ('store', ?)", (uuid.uuid4().hex,))
         self.identity: str = self._db.execute("SELECT value FROM meta WHERE name = 'store'").fetchone()[0]
-        self._graphs: dict[tuple[str, str], PoseGraphUpdate] = {}  # held pose graphs, decoded once
+        self._graphs: dict[tuple[str, str], PoseGraph] = {}  # held pose graphs, as committed, decoded once
 
     def close(self) -> None:
         with self._lock:
@@ -103,42 +119,48 @@ class Store:
         return self.put_scans([(msg, raw)])[0]
 
     def put_poses(self, update: PoseGraphUpdate, raw: bytes) -> bool:
-        """Merge `update` into the robot's held pose graph; False if its revision is older."""
+        """Apply `update` node by node to the robot's held pose graph; False if it changes nothing
+        (every node it lists, and its anchor, set by a newer revision, or a resent part)."""
+        key = (update.fleet, update.robot)
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                held = self._held_graph(update.fleet, update.robot)
-                if held is not None and update.revision < held.revision:
+                graph = self._held_graph(*key) or PoseGraph()
+                if not graph.apply(update).changed:
                     self._db.execute("ROLLBACK")
                     return False
-                merged = _merge(held, update)
+                as_sent = graph.is_exactly(update)  # a robot's first update, or one listing its whole graph
                 self._db.execute(
-                    "INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?)",
+                    "INSERT OR REPLACE INTO poses (fleet, robot, revision, received, raw, node_revisions, "
+                    "anchor_revision) VALUES (?, ?, ?, ?, ?, ?, ?)",
                     (
-                        update.fleet,
-                        update.robot,
-                        update.revision,
+                        *key,
+                        graph.revision,
                         time.time(),
-                        bytes(raw) if merged is update else encode(merged),
+                        bytes(raw) if as_sent else encode(graph.as_update(*key)),
+                        None if as_sent else graph.node_revisions(),
+                        graph.anchor_revision if graph.anchor is not None else None,
                     ),
                 )
                 self._db.execute("COMMIT")
-                self._graphs[(update.fleet, update.robot)] = merged
+                self._graphs[key] = graph
             except BaseException:
+                self._graphs.pop(key, None)  # it may hold what was not committed: read it again
                 if self._db.in_transaction:
                     self._db.execute("ROLLBACK")
                 raise
         return True
 
-    def _held_graph(self, fleet: str, robot: str) -> PoseGraphUpdate | None:
+    def _held_graph(self, fleet: str, robot: str) -> PoseGraph | None:
         """The robot's pose graph as committed (caller holds the lock)."""
         key = (fleet, robot)
         if key not in self._graphs:
-            row = self._db.execute("SELECT raw FROM poses WHERE fleet = ? AND robot = ?", key).fetchone()
+            row = self._db.execute(
+                "SELECT raw, node_revisions, anchor_revision FROM poses WHERE fleet = ? AND robot = ?", key
+            ).fetchone()
             if row is None:
                 return None
-            # A merged graph may outgrow the wire's size cap; the store wrote it, so allow its size.
-            self._graphs[key] = decode(row[0], expect=PoseGraphUpdate, max_bytes=max(len(row[0]), 1))
+            self._graphs[key] = _graph(*row)
         return self._graphs[key]
 
     # -- reads ---------------------------------------------------------------------------------
@@ -148,11 +170,15 @@ class Store:
             scans = self._db.execute(
                 "SELECT raw, size FROM scans WHERE fleet = ? ORDER BY robot, node", (fleet,)
             ).fetchall()
-            graphs = self._db.execute("SELECT raw FROM poses WHERE fleet = ? ORDER BY robot", (fleet,)).fetchall()
+            graphs = self._db.execute(
+                "SELECT robot, raw, node_revisions, anchor_revision FROM poses WHERE fleet = ? ORDER BY robot", (fleet,)
+            ).fetchall()
         for raw, size in scans:
             yield Stored(decode(raw, expect=ScanMessage), size)
-        for (raw,) in graphs:
-            yield Stored(decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1)), len(raw))
+        for robot, *row in graphs:
+            # Revision by revision: applied in order, they give a map the per-node revisions too.
+            for update in _graph(*row).by_revision(fleet, robot):
+                yield Stored(update, 0)
 
     def scan_count(self, fleet: str, robot: str | None = None) -> int:
         query, args = "SELECT COUNT(*) FROM scans WHERE fleet = ?", [fleet]
@@ -163,8 +189,10 @@ class Store:
 
     def inventory(self, fleet: str, robot: str) -> StoreInventory:
         """What this store holds of `robot`: its node ids and the newest pose-graph revision applied."""
-        graph = self.pose_graph(fleet, robot)
-        return StoreInventory.of(fleet, robot, self.identity, self.nodes(fleet, robot), graph and graph.revision)
+        with self._lock:
+            graph = self._held_graph(fleet, robot)
+        revision = None if graph is None else graph.revision
+        return StoreInventory.of(fleet, robot, self.identity, self.nodes(fleet, robot), revision)
 
     def nodes(self, fleet: str, robot: str) -> set[int]:
         with self._lock:
@@ -179,20 +207,13 @@ class Store:
         return row[0] if row else None
 
     def pose_graph(self, fleet: str, robot: str) -> PoseGraphUpdate | None:
+        """The robot's pose graph as committed: every node's pose and the anchor, at the newest revision."""
         with self._lock:
-            return self._held_graph(fleet, robot)
+            graph = self._held_graph(fleet, robot)
+            return None if graph is None else graph.as_update(fleet, robot)
 
 
-def _merge(held: PoseGraphUpdate | None, update: PoseGraphUpdate) -> PoseGraphUpdate:
-    """`update` with the node poses and anchor of `held` that it does not replace.
-
-    Returns `update` itself when nothing of `held` survives, so its bytes can be kept as sent.
-    """
-    if held is None:
-        return update
-    poses = dict(held.poses)
-    poses.update(update.poses)
-    anchor = update.anchor if update.anchor is not None else held.anchor
-    if len(poses) == len(update.poses) and anchor is update.anchor:
-        return update
-    return PoseGraphUpdate(update.fleet, update.robot, update.revision, tuple(sorted(poses.items())), anchor)
+def _graph(raw: bytes, node_revisions: bytes | None, anchor_revision: int | None) -> PoseGraph:
+    """A `poses` row's graph. A merged graph may outgrow the wire's size cap; the store wrote it, so allow its size."""
+    merged = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))
+    return PoseGraph.from_stored(merged, node_revisions, anchor_revision)

@@ -54,7 +54,7 @@ def test_pose_update_reposes_without_refitting(fitted):
     after = fleet.occupancy(GRID)
     assert np.array_equal(after, offline(scans, models, "r1"))
     assert not np.array_equal(before, after)
-    assert not fleet.apply_poses(PoseGraphUpdate("f", "r1", 0, ((0, scans[0].pose),)))  # older: dropped
+    assert not fleet.apply_poses(PoseGraphUpdate("f", "r1", 0, ((0, scans[0].pose),)))  # revision 1 set node 0
     assert fleet.robots()[0]["pose_revision"] == 1
 
 

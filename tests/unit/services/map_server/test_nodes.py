@@ -1,9 +1,16 @@
-"""The node store's change log: positions survive dropped entries."""
+"""The node store: change-log positions survive dropped entries; pose-graph updates apply node
+by node (protocol v2) and move only the nodes whose world pose changed."""
 
+import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from gmm_core import fit_scan
+from protocol import ScanMessage
 from services.map_server import nodes
-from services.map_server.nodes import ChangeLog, NodeKey
+from services.map_server.nodes import ChangeLog, NodeKey, NodeStore
+from support.pose_graphs import FLEET, ReferenceGraph, pose, random_history, update
 
 
 def test_change_log_positions_survive_dropped_entries(monkeypatch):
@@ -18,3 +25,91 @@ def test_change_log_positions_survive_dropped_entries(monkeypatch):
         log.since(3)
     log.extend([NodeKey("s", i) for i in range(7)])  # 9 entries > 8: the oldest go, 4 are kept
     assert (log.start, log.end, log.since(9)) == (9, 13, [NodeKey("s", i) for i in range(3, 7)])
+
+
+@pytest.fixture(scope="module")
+def model():
+    rng = np.random.default_rng(1)
+    return fit_scan(rng.normal(size=(40, 2)) * 0.2 + [2.0, 0.0], np.zeros((0, 2)))
+
+
+def scan(model, node, x=0.0):
+    return ScanMessage(FLEET, "r", node, float(node), model, pose(x))
+
+
+def held_store(model, nodes):
+    """A NodeStore holding scans `nodes` of robot r at the origin, and the boxes it marked moved."""
+    marked = []
+    store = NodeStore(moved=lambda lo, hi: marked.append(len(lo)))
+    for n in nodes:
+        store.add(scan(model, n, x=-1.0))
+    marked.clear()
+    return store, marked
+
+
+def map_x(store, node):
+    return float(store.robots["r"].nodes[node].map_pose.t[0])
+
+
+def test_a_late_older_revision_sets_the_nodes_the_newer_one_does_not_list(model):
+    store, _ = held_store(model, [0, 1, 2])
+    assert store.apply(update(2, [(0, 1.0), (1, 1.0)]))
+    assert store.apply(update(1, [(1, 0.5), (2, 0.5)]))
+    assert [map_x(store, n) for n in (0, 1, 2)] == [1.0, 1.0, 0.5]  # node 1 keeps revision 2's pose
+    assert not store.apply(update(1, [(1, 0.5)]))
+    assert store.robot_rows()[0]["pose_revision"] == 2
+
+
+def test_corrections_of_scans_still_on_the_way_are_ordered_by_revision(model):
+    store, _ = held_store(model, [])
+    assert store.apply(update(3, [(5, 1.0)]))
+    assert not store.apply(update(2, [(5, 0.5)]))  # older than the held correction
+    assert store.apply(update(3, [(6, 1.5)]))  # another part of revision 3
+    store.add(scan(model, 5))
+    store.add(scan(model, 6))
+    assert (map_x(store, 5), map_x(store, 6)) == (1.0, 1.5)
+    assert store.apply(update(4, [(5, 0.0)])) and map_x(store, 5) == 0.0
+
+
+def test_only_nodes_whose_world_pose_changed_are_moved(model):
+    store, marked = held_store(model, [0, 1])
+    assert store.apply(update(1, [(0, 1.0)], anchor=0.5)) and marked == [4]  # the anchor moves both, once each
+    start, stamps = store.log.end, [store.posed(NodeKey("r", n)).stamp for n in (0, 1)]
+    assert store.apply(update(2, [(0, 1.0)], anchor=0.5))  # the same poses at a newer revision
+    assert (marked, store.log.end) == ([4], start)
+    assert store.apply(update(1, [(1, 0.0)], anchor=0.0))  # node 1 had no correction; the anchor is revision 2's
+    assert (marked, store.log.since(start)) == ([4, 2], [NodeKey("r", 1)])
+    assert store.posed(NodeKey("r", 0)).stamp == stamps[0] and store.posed(NodeKey("r", 1)).stamp != stamps[1]
+    assert float(store.robots["r"].anchor.t[0]) == 0.5
+    assert not store.apply(update(1, [(0, 0.0)])) and marked == [4, 2]
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1))
+def test_random_histories_with_scans_arriving_between_agree_with_the_plain_model(model, seed):
+    """Each update: the same judgement as the model; each held node where the model puts it; moved
+    (logged) exactly the held nodes whose world pose changed."""
+    rng = np.random.default_rng(seed)
+    history = random_history(rng, nodes=6)
+    arrivals = {int(i): n for n, i in enumerate(rng.integers(0, len(history) + 1, size=6))}  # scan n before update i
+    store, reference = NodeStore(moved=lambda lo, hi: None), ReferenceGraph()
+    estimate = -1.0  # every scan's own pose: never one of X_VALUES
+
+    def where(model_state, node):
+        return model_state[0].get(node, (None, estimate))[1], model_state[1] and model_state[1][1]
+
+    for i, message in enumerate(history + [None]):
+        for n in sorted(n for j, n in arrivals.items() if j == i):
+            store.add(scan(model, n, x=estimate))
+        if message is None:
+            break
+        before, start = (dict(reference.nodes), reference.anchor), store.log.end
+        assert store.apply(message) == reference.apply(message)
+        after = (reference.nodes, reference.anchor)
+        held = store.robots["r"].nodes
+        assert {n: map_x(store, n) for n in held} == {n: where(after, n)[0] for n in held}
+        assert set(store.log.since(start)) == {NodeKey("r", n) for n in held if where(before, n) != where(after, n)}
+    assert store.robots["r"].revision == max(m.revision for m in history)
+    anchor_x = reference.anchor[1] if reference.anchor is not None else 0.0  # all poses are along x
+    for n in store.robots["r"].nodes:
+        assert store.posed(NodeKey("r", n)).pose.t[0] == anchor_x + where(after, n)[0]

@@ -46,19 +46,23 @@ def test_store_keeps_each_scan_once_and_survives_reopening(tmp_path, model):
     assert list(store.load("other")) == []
 
 
-def test_store_merges_pose_graphs_and_ignores_older_revisions(tmp_path):
+def test_store_merges_pose_graphs_node_by_node(tmp_path):
     store = Store(tmp_path)
     anchor = Pose.from_xytheta(10, 0, 0)
     update = poses("r", 2, [(0, 1.0), (1, 1.0)], anchor)
     assert store.put_poses(update, encode(update))
-    assert store.put_poses(poses("r", 1, [(0, 5.0)]), b"") is False  # older: nothing changes
+    assert store.put_poses(poses("r", 1, [(0, 5.0)]), b"") is False  # node 0 was set by revision 2
+    older = poses("r", 1, [(0, 5.0), (4, 5.0)], Pose.identity(2))  # node 4: no newer revision listed it
+    assert store.put_poses(older, encode(older))
     newer = poses("r", 3, [(1, 2.0), (2, 2.0)])  # lists only the nodes it moves, no anchor
     assert store.put_poses(newer, encode(newer))
     held = store.pose_graph("default", "r")
     assert held.revision == 3
-    assert {n: p.t[0] for n, p in held.poses} == {0: 1.0, 1: 2.0, 2: 2.0}
+    assert {n: p.t[0] for n, p in held.poses} == {0: 1.0, 1: 2.0, 2: 2.0, 4: 5.0}
     assert held.anchor is not None and held.anchor.t[0] == 10
-    assert [type(r.message) for r in store.load("default")] == [PoseGraphUpdate]
+    by_revision = [(r.message.revision, [n for n, _ in r.message.poses]) for r in store.load("default")]
+    assert by_revision == [(1, [4]), (2, [0]), (3, [1, 2])]
+    assert store.inventory("default", "r").revision == 3
 
 
 def run_ingest(state, *phases):
