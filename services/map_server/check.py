@@ -11,6 +11,8 @@ import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from protocol import PoseGraphUpdate, ProtocolError, ScanMessage, decode
 
 from .store import DB_NAME
@@ -44,7 +46,11 @@ def check_store(data_dir: str | Path) -> StoreCheck:
                     )
             except ProtocolError as error:
                 result.bad.append(f"scan {fleet}/{robot}/{node}: {error}")
-        for fleet, robot, revision, raw in db.execute("SELECT fleet, robot, revision, raw FROM poses"):
+        columns = {row[1] for row in db.execute("PRAGMA table_info(poses)")}
+        per_node = "node_revisions, anchor_revision" if "node_revisions" in columns else "NULL, NULL"  # a v1 store
+        for fleet, robot, revision, raw, node_revisions, anchor_revision in db.execute(
+            f"SELECT fleet, robot, revision, raw, {per_node} FROM poses"
+        ):
             result.poses += 1
             try:
                 m = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))  # merged graphs may be large
@@ -52,8 +58,22 @@ def check_store(data_dir: str | Path) -> StoreCheck:
                     raise ProtocolError(
                         "key", f"row says {fleet}/{robot} r{revision}, message {m.fleet}/{m.robot} r{m.revision}"
                     )
+                _check_revisions(m, node_revisions, anchor_revision)
             except ProtocolError as error:
                 result.bad.append(f"poses {fleet}/{robot}: {error}")
         return result
     finally:
         db.close()
+
+
+def _check_revisions(graph: PoseGraphUpdate, node_revisions: bytes | None, anchor_revision: int | None) -> None:
+    """The per-node revisions of a merged graph: one u64 per pose, none newer than the graph's."""
+    if node_revisions is not None:
+        if len(node_revisions) != 8 * len(graph.poses):
+            raise ProtocolError(
+                "node_revisions", f"{len(node_revisions)} bytes for {len(graph.poses)} poses (8 bytes each)"
+            )
+        if len(node_revisions) and int(np.frombuffer(node_revisions, dtype="<u8").max()) > graph.revision:
+            raise ProtocolError("node_revisions", f"a node's revision is newer than the graph's {graph.revision}")
+    if anchor_revision is not None and anchor_revision > graph.revision:
+        raise ProtocolError("anchor_revision", f"{anchor_revision} is newer than the graph's {graph.revision}")
