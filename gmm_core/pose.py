@@ -80,3 +80,25 @@ class Pose:
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Transform (n, d) points from the local frame to the parent frame."""
         return np.asarray(points) @ self.R.T + self.t
+
+    def between(self, other: Pose, fraction: float) -> Pose:
+        """The pose a `fraction` of the way from this one to `other`: translation on the line,
+        rotation along the shorter arc (2D: the angle; 3D: slerp of the quaternions)."""
+        t = self.t + fraction * (other.t - self.t)
+        if self.dim == 2:
+            a, b = np.arctan2(self.R[1, 0], self.R[0, 0]), np.arctan2(other.R[1, 0], other.R[0, 0])
+            turn = (b - a + np.pi) % (2 * np.pi) - np.pi
+            return Pose.from_xytheta(t[0], t[1], a + fraction * turn)
+        return Pose.from_quaternion(t, slerp(self.as_quaternion(), other.as_quaternion(), fraction))
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
+    """The unit quaternion a `fraction` of the way from q0 to q1 along the shorter arc."""
+    dot = float(q0 @ q1)
+    if dot < 0:  # q and -q are one rotation: go the short way round
+        q1, dot = -q1, -dot
+    if dot > 1 - 1e-12:  # (nearly) the same rotation: sin(angle) would divide by ~0
+        q = q0 + fraction * (q1 - q0)
+        return q / np.linalg.norm(q)
+    angle = np.arccos(dot)
+    return (np.sin((1 - fraction) * angle) * q0 + np.sin(fraction * angle) * q1) / np.sin(angle)

@@ -43,7 +43,14 @@ from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
 from .outbox import Outbox
-from .sources import Node, SimulatedNodes, default_update_every, load_nodes
+from .sources import (
+    FixedCorrections,
+    Node,
+    RelaxingCorrections,
+    SimulatedNodes,
+    default_update_every,
+    load_nodes,
+)
 
 log = logging.getLogger("gmmap.agent")
 
@@ -346,7 +353,8 @@ class Agent:
         """Fit and send every node the keyframe policy keeps, with pose-graph updates; returns the
         updates sent. `kept` counts the nodes, `resumed` those a previous run got through."""
         o = self.options
-        corrected: dict[int, Pose] = {}
+        corrected: dict[int, Node] = {}  # the nodes a back end corrects
+        back_end = RelaxingCorrections() if isinstance(nodes, SimulatedNodes) else FixedCorrections()
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
         # those the store lacks and the outbox no longer keeps are fitted again.
@@ -370,11 +378,11 @@ class Agent:
                     scan = node.scan
                     delivered = self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
                 if delivered and node.corrected is not None:
-                    corrected[node.node] = node.corrected
+                    corrected[node.node] = node
             if corrected and o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
-                updates += self.correct(corrected) is not None
+                updates += self.correct(back_end.closure(corrected, final=False)) is not None
         if corrected:  # and once at the end, as a back end closing its graph would
-            updates += self.correct(corrected) is not None
+            updates += self.correct(back_end.closure(corrected, final=True)) is not None
         return updates
 
     def refit(self, nodes: Sequence[Node] | SimulatedNodes) -> int:

@@ -15,7 +15,7 @@ one; the agent's pose-graph updates then play the loop closures, every `update_e
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 from gmm_core import Pose
@@ -61,6 +61,35 @@ def is_simulated(source: str) -> bool:
 def default_update_every(source: str, rate: float) -> int:
     """Scans between pose-graph updates: the simulated loop-closure period, or 100 for a log."""
     return correction_interval(rate or DEFAULT_RATE) if is_simulated(source) else LOG_UPDATE_EVERY
+
+
+class FixedCorrections:
+    """A log's SLAM back end: every node's corrected pose is final from the start."""
+
+    def closure(self, nodes: Mapping[int, Node], final: bool) -> dict[int, Pose]:
+        return {k: n.corrected for k, n in nodes.items() if n.corrected is not None}
+
+
+class RelaxingCorrections:
+    """A simulated robot's pose-graph optimiser: each loop closure moves every node it knows part
+    of the way from its estimate to the truth, half of what is left, so the newest nodes move most
+    and older ones less and less, as an optimiser spreads a closure's correction; the last closure
+    (the mission's end) converges to the truth."""
+
+    def __init__(self) -> None:
+        self._joined: dict[int, int] = {}  # node -> the closure that first placed it
+        self._closures = 0
+
+    def closure(self, nodes: Mapping[int, Node], final: bool) -> dict[int, Pose]:
+        self._closures += 1
+        poses = {}
+        for k, n in nodes.items():
+            if n.corrected is None:
+                continue
+            joined = self._joined.setdefault(k, self._closures)
+            left = 0.0 if final else 0.5 ** (self._closures - joined + 1)
+            poses[k] = n.corrected.between(n.estimate, left)
+        return poses
 
 
 @dataclass(frozen=True)

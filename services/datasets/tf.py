@@ -14,25 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gmm_core.pose import Pose
+from gmm_core.pose import Pose, slerp
 
 from .common import DatasetError
 
 
 class Extrapolation(DatasetError):
     """A stamp outside the time span of a timed transform (or of a pose topic)."""
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
-    """The unit quaternion a `fraction` of the way from q0 to q1 along the shorter arc."""
-    dot = float(q0 @ q1)
-    if dot < 0:  # q and -q are one rotation: go the short way round
-        q1, dot = -q1, -dot
-    if dot > 1 - 1e-12:  # (nearly) the same rotation: sin(angle) would divide by ~0
-        q = q0 + fraction * (q1 - q0)
-        return q / np.linalg.norm(q)
-    angle = np.arccos(dot)
-    return (np.sin((1 - fraction) * angle) * q0 + np.sin(fraction * angle) * q1) / np.sin(angle)
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from gmm_core.pose import Pose
 from services.datasets import DatasetError
-from services.datasets.tf import Extrapolation, TimedPoses, TransformBuffer, slerp
+from services.datasets.tf import Extrapolation, TimedPoses, TransformBuffer
 
 
 def random_pose(rng) -> Pose:
@@ -78,17 +78,6 @@ def test_sample_stamps_return_the_sample_and_duplicates_keep_the_first():
     assert series.span == (1.0, 3.0)
     np.testing.assert_array_equal(series.at(2.0).t, [1, 0, 0])
     np.testing.assert_allclose(series.at(1.5).t, [0.5, 0, 0])
-
-
-def test_slerp_closed_form_and_short_way():
-    axis = np.array([0.0, 0.0, 1.0])
-    for f in (0.0, 0.25, 0.5, 1.0):
-        q = slerp(np.array([1.0, 0, 0, 0]), np.array([np.cos(0.6), *(np.sin(0.6) * axis)]), f)
-        np.testing.assert_allclose(q, [np.cos(0.6 * f), 0, 0, np.sin(0.6 * f)], atol=1e-15)
-    # -q1 is the same rotation as q1: the half-way point is still a 0.3 rad turn about z
-    q = slerp(np.array([1.0, 0, 0, 0]), -np.array([np.cos(0.3), 0, 0, np.sin(0.3)]), 0.5)
-    np.testing.assert_allclose(abs(q @ [np.cos(0.15), 0, 0, np.sin(0.15)]), 1, atol=1e-15)
-    np.testing.assert_allclose(slerp(np.array([0.0, 1, 0, 0]), np.array([0.0, 1, 0, 0]), 0.3), [0, 1, 0, 0])
 
 
 def test_inconsistent_trees_are_named():
