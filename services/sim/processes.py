@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+from services.map_server.config import ServerConfig
 from services.sim.fleet import SimSource
 
 ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python -m services.cli`
@@ -20,6 +21,18 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def http_security_args(server: ServerConfig) -> tuple[str, ...]:
+    """`gmmap server` flags for the TLS, tokens and --http-insecure of `server`, with absolute paths:
+    a child runs in its work directory."""
+    files = (
+        ("--http-tls-cert", server.http_tls_cert),
+        ("--http-tls-key", server.http_tls_key),
+        ("--http-tokens", server.http_tokens),
+    )
+    args = [arg for flag, path in files if path for arg in (flag, os.path.abspath(path))]
+    return (*args, "--http-insecure") if server.http_insecure else tuple(args)
 
 
 # A simulated robot publishes every scan (no keyframe policy), so load and bandwidth figures compare.
