@@ -47,6 +47,8 @@ class HttpClient:
         host, port = split_address(server.http)
         host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
         host = f"[{host}]" if ":" in host else host
+        if server.http_tokens and not token_file:
+            raise ValueError("--http-token: the server has tokens (--http-tokens): give a file holding one of them")
         token = read_token(token_file) if token_file else None
         if ca_file:
             tls_context(ca_file)  # a bad CA file is said now, not at the first request

@@ -31,6 +31,8 @@ def test_tls_and_a_token_from_files(tmp_path):
 
 def test_bad_token_and_ca_files_are_named(tmp_path):
     server = ServerConfig()
+    with pytest.raises(ValueError, match="--http-token: the server has tokens"):  # every request would be 401
+        HttpClient.for_server(ServerConfig(http_tokens="tokens.txt"), None, None)
     with pytest.raises(ValueError, match=r"--http-token: cannot read .*absent"):
         read_token(tmp_path / "absent")
     (tmp_path / "two").write_text("gmmap_a gmmap_b")
