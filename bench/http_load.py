@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gmm_core import Grid
+from services.http_client import HttpClient
 from services.sim.processes import free_port
 from services.sim.run import TileClients, tile_urls
 
@@ -81,11 +82,11 @@ def main() -> None:
                 stderr=subprocess.DEVNULL,
             )
             # The viewer's tiling over the Intel map (0.05, 0.1 and 0.2 m), as `gmmap sim` fetches it.
-            urls = tile_urls(base, Grid.from_bbox([-21.0, -31.0], [26.0, 14.0], 0.05))
+            urls = tile_urls(Grid.from_bbox([-21.0, -31.0], [26.0, 14.0], 0.05))
             print(f"{len(urls)} distinct tiles, {args.clients} clients, {args.seconds:.0f} s per phase")
             print("| phase | requests | errors | req/s | p50 ms | p90 ms | p99 ms |\n|---|---|---|---|---|---|---|")
             for phase in ("cold", "warm"):
-                clients = TileClients(urls, args.clients)
+                clients = TileClients(HttpClient(base), urls, args.clients)
                 time.sleep(args.seconds)
                 lat, errors = clients.stop()
                 ms = 1000 * np.percentile(lat, [50, 90, 99])

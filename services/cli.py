@@ -11,9 +11,12 @@ import numpy as np
 from services.cli_flags import (
     config_flag,
     fit_flags,
+    http_client_flags,
     keyframe_flags,
     reconstruction_flags,
     resolve_config,
+    server_http_flags,
+    server_tls_token_flags,
     setting,
     source_flags,
     source_options,
@@ -194,7 +197,14 @@ def cmd_sim(args) -> int:
 def cmd_demo(args) -> int:
     from services.sim.demo import run_demo
 
-    return run_demo(args.http, args.duration)
+    config = resolve_config(args)
+    return run_demo(config.server, config.sim, args.duration)
+
+
+def cmd_token(args) -> int:
+    from services.map_server.tokens import run_token
+
+    return run_token(args.name, args.robots, args.add)
 
 
 def _fleet_id(text: str) -> str:
@@ -204,6 +214,10 @@ def _fleet_id(text: str) -> str:
         return check_id(text, "id")
     except ProtocolError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _robot_ids(text: str) -> list[str]:
+    return [_fleet_id(robot) for robot in text.split(",")]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -276,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.json5",
         help="Zenoh config file (scouting stays off unless it says so)",
     )
-    setting(p, "--http", "server.http", metavar="HOST:PORT", help="HTTP address; '' for none")
+    server_http_flags(p)
     setting(p, "--data-dir", "server.data_dir")
     setting(
         p,
@@ -411,6 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="concurrent HTTP clients fetching map tiles meanwhile",
     )
     setting(p, "--report", "sim.report", metavar="DIR", help="write DIR/report.json, DIR/report.md and its PNG plots")
+    server_tls_token_flags(p)  # the sim's own server on 127.0.0.1
+    http_client_flags(p)  # its snapshot and tile clients
     fit_flags(p)  # the robots' fit
     reconstruction_flags(p)  # the server's
     config_flag(p)
@@ -422,8 +438,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--duration", type=float, default=0.0, help="seconds the robots drive, then everything stops; 0: until Ctrl-C"
     )
-    p.add_argument("--http", default="127.0.0.1:8000", metavar="HOST:PORT", help="where the viewer is served")
-    p.set_defaults(run=cmd_demo)
+    server_http_flags(p)  # where the viewer is served, and how it is secured
+    http_client_flags(p)  # the demo's own progress reads
+    p.set_defaults(run=cmd_demo, config=None)
+
+    p = sub.add_parser("token", help="a new bearer token for the HTTP API (stdout), and its line for --http-tokens")
+    p.add_argument("name", type=_fleet_id, help="who the token is for, unique in the token file")
+    p.add_argument("--robots", type=_robot_ids, metavar="ID,ID", help="read only these robots' map (default: all)")
+    p.add_argument("--add", metavar="FILE", help="append the line to this token file (created mode 600)")
+    p.set_defaults(run=cmd_token)
     return parser
 
 

@@ -86,6 +86,45 @@ def keyframe_flags(p: argparse.ArgumentParser) -> None:
     setting(p, "--keyframe-period", "keyframe.period", type=float, metavar="S", help="a node after S s")
 
 
+def server_tls_token_flags(p: argparse.ArgumentParser) -> None:
+    """TLS and bearer tokens of a server's HTTP API (docs/RELIABILITY.md, "Who may read the map")."""
+    setting(p, "--http-tls-cert", "server.http_tls_cert", metavar="CERT.pem", help="serve HTTPS with this certificate")
+    setting(p, "--http-tls-key", "server.http_tls_key", metavar="KEY.pem", help="the certificate's private key")
+    setting(
+        p,
+        "--http-tokens",
+        "server.http_tokens",
+        metavar="FILE",
+        help="bearer tokens, one client a line: NAME sha256:HEX [robots=ID,...] (made by `gmmap token NAME`)",
+    )
+
+
+def server_http_flags(p: argparse.ArgumentParser) -> None:
+    """Where a server's HTTP API listens, and how it is secured."""
+    setting(
+        p,
+        "--http",
+        "server.http",
+        metavar="HOST:PORT",
+        help="HTTP address ([::1]:PORT for IPv6; '' for none); beyond loopback it needs TLS and tokens",
+    )
+    server_tls_token_flags(p)
+    setting(
+        p,
+        "--http-insecure",
+        "server.http_insecure",
+        action="store_true",
+        help="serve a non-loopback --http without TLS or tokens anyway (a trusted network, or a proxy that "
+        "authenticates)",
+    )
+
+
+def http_client_flags(p: argparse.ArgumentParser) -> None:
+    """How the command's own HTTP clients reach a server that has TLS and tokens."""
+    setting(p, "--http-token", "sim.http_token", metavar="FILE", help="a file holding the bearer token to send")
+    setting(p, "--http-ca", "sim.http_ca", metavar="CA.pem", help="the CA that signed the server's TLS certificate")
+
+
 SOURCE_OPTIONS = ("poses", "scan_topic", "pose_topic")  # read_scans keywords, set only when given
 
 

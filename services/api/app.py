@@ -3,6 +3,7 @@
 Endpoints that reconstruct occupancy or read the fleet map are plain `def` functions: FastAPI
 runs them in its threadpool, so CPU-bound reconstruction (and waiting for the map's lock) never
 blocks the event loop. Every bad parameter is answered with JSON and a 4xx code naming it.
+With a token file, who may read what is checked first (auth.py).
 """
 
 from __future__ import annotations
@@ -10,13 +11,12 @@ from __future__ import annotations
 import io
 import threading
 import time
-from collections import OrderedDict
 from enum import Enum
 from pathlib import Path
 
 import fastapi_offline
 import numpy as np
-from fastapi import FastAPI, Query, Request
+from fastapi import Depends, FastAPI, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
@@ -29,9 +29,12 @@ from starlette.staticfiles import StaticFiles
 
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
+from services.map_server.tokens import TokenFile
 from services.render import occupancy_png, probability_png
 
 from . import params
+from .auth import Access, BearerAuth, access_dependency
+from .encoded import EncodedTiles
 from .limits import MAX_BODY, BodyLimit
 from .params import ApiError
 from .points import BLOCK, MAX_GRIDS, plan, point_probabilities
@@ -97,41 +100,13 @@ ERRORS = {
         (422, "A parameter is missing, malformed or over a limit; `field` names it"),
     )
 }
-
-
-class EncodedTiles:
-    """Reply bodies of recent tiles: a cached tile is the same read-only array until it changes,
-    so its PNG (the costliest part of a cached reply) is encoded once. One body per request (format,
-    and a PNG's shade and variance; grid; robots), for the array it was made from; at most `max_bytes`
-    in all."""
-
-    def __init__(self, max_bytes: int = 64 << 20):
-        self._max_bytes = max_bytes
-        self._bytes = 0
-        self._bodies: OrderedDict[tuple, tuple[np.ndarray, bytes]] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, key: tuple, prob: np.ndarray) -> bytes | None:
-        with self._lock:
-            hit = self._bodies.get(key)
-            if hit is None or hit[0] is not prob:
-                return None
-            self._bodies.move_to_end(key)
-            return hit[1]
-
-    def put(self, key: tuple, prob: np.ndarray, body: bytes) -> None:
-        size = prob.nbytes + len(body)
-        if size > self._max_bytes // 8:  # a large region: not worth holding
-            return
-        with self._lock:
-            old = self._bodies.pop(key, None)
-            if old is not None:
-                self._bytes -= old[0].nbytes + len(old[1])
-            self._bodies[key] = (prob, body)
-            self._bytes += size
-            while self._bytes > self._max_bytes:
-                _, (p, b) = self._bodies.popitem(last=False)
-                self._bytes -= p.nbytes + len(b)
+AUTH_ERRORS = {
+    status: {"model": ErrorBody, "description": text}
+    for status, text in (
+        (401, "No bearer token, or not one of the server's (WWW-Authenticate: Bearer)"),
+        (403, "The token may not read a robot the request names (`field` names the parameter)"),
+    )
+}
 
 
 def allowed_methods(app: FastAPI, scope) -> set[str]:
@@ -150,11 +125,18 @@ def error(status: int, field: str | None, message: str, headers=None) -> JSONRes
     )
 
 
-def create_app(state, *, cors_origins: list[str] | None = None, default_variance: float = DEFAULT_VARIANCE) -> FastAPI:
+def create_app(
+    state,
+    *,
+    cors_origins: list[str] | None = None,
+    default_variance: float = DEFAULT_VARIANCE,
+    tokens: TokenFile | None = None,
+) -> FastAPI:
     """The FastAPI app over one server's `state` (a ServerState: fleet, fleet_map, metrics).
 
     CORS is off unless `cors_origins` is given. `default_variance` is sigma^2 of Eq. 12 for PNGs that
-    ask for none (the server's reconstruction.variance).
+    ask for none (the server's reconstruction.variance). With `tokens`, every request but those of
+    auth.OPEN_PATHS needs a bearer token of that file, and reads only its client's robots.
     """
     default_variance = params.variance(default_variance)
     app = FastAPI(
@@ -165,16 +147,19 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
             "Grids follow docs/ARCHITECTURE.md: origin is the min corner, arrays are indexed [iy, ix] or [iz, iy, ix], "
             "cell centre = origin + (index + 0.5) * resolution, 0.5 where nothing was observed."
         ),
-        responses=ERRORS,
+        responses=ERRORS | AUTH_ERRORS if tokens is not None else ERRORS,
         docs_url=None,
         redoc_url=None,
     )  # /docs is served below from local files: no CDN on a robot's network
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY)
+    if tokens is not None:  # outside BodyLimit: a request without a token is refused before its body is read
+        app.add_middleware(BearerAuth, tokens=tokens, refused=state.metrics.http_refused)
     if cors_origins:
         app.add_middleware(
             CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"], expose_headers=GRID_HEADERS
         )
     fmap = state.fleet_map
+    access = access_dependency(tokens)
     viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(default_variance))
     encoded = EncodedTiles()
     synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0}
@@ -182,6 +167,8 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
 
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError):
+        if exc.status == 403:
+            state.metrics.http_refused.labels("forbidden").inc()
         return error(exc.status, exc.field, exc.message)
 
     @app.exception_handler(RequestValidationError)
@@ -258,13 +245,14 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
             ),
             **_range(params.MIN_VARIANCE, params.MAX_VARIANCE),
         ),
+        who: Access = Depends(access),
     ) -> Response:
         start = time.perf_counter()
         res = params.resolution(resolution)
         lo, hi = params.bbox(bbox)
         params.check_dimension(len(lo), fmap.dim, "bbox")
         grid = params.grid(lo, hi, res)
-        selected = params.robots(robots)
+        selected = who.select(params.robots(robots))  # the reply's key below: per client's robots
         sigma2 = params.variance(variance)
         picture = (shade, sigma2 if shade is Shade.classes else None) if format is Format.png else None
         prob = occupancy_of(grid, selected)
@@ -328,6 +316,7 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
             description="comma-separated robot ids; every robot when absent",
             json_schema_extra={"pattern": params.ROBOTS_PATTERN},
         ),
+        who: Access = Depends(access),
     ) -> dict:
         if (xy is None) == (xyz is None):
             raise ApiError("xy", "give exactly one of xy (2D) or xyz (3D)")
@@ -337,33 +326,36 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
             raise ApiError(field, f"at most {params.MAX_POINTS:,} points per request")
         params.check_dimension(d, fmap.dim, field)
         pts = params.points(params.numbers(text, field), d, field)
-        return points_reply(pts, res, params.robots(robots), field)
+        return points_reply(pts, res, who.select(params.robots(robots)), field)
 
     @app.post("/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)")
-    def occupancy_points_post(body: PointsBody) -> dict:
+    def occupancy_points_post(body: PointsBody, who: Access = Depends(access)) -> dict:
         res = params.resolution(body.resolution)
         d = len(body.points[0]) if body.points else 0
         if d not in (2, 3) or any(len(p) != d for p in body.points):
             raise ApiError("points", "must be a non-empty list of [x, y] or [x, y, z]")
         params.check_dimension(d, fmap.dim, "points")
         pts = params.points(body.points, d, "points")
-        return points_reply(pts, res, params.robots(body.robots), "points")
+        return points_reply(pts, res, who.select(params.robots(body.robots)), "points")
 
     # -- robots and the map -----------------------------------------------------------------
     @app.get("/v1/robots", summary="Every robot of the fleet")
-    def robots_list() -> list[dict]:
-        return fmap.robots()
+    def robots_list(who: Access = Depends(access)) -> list[dict]:
+        return [r for r in fmap.robots() if who.robots is None or r["robot"] in who.robots]
 
     @app.get("/v1/robots/{robot}/trajectory", summary="World positions of a robot's nodes, in node order")
-    def trajectory(robot: str = PathParam(..., json_schema_extra={"pattern": params.ID_PATTERN})) -> list[list[float]]:
+    def trajectory(
+        robot: str = PathParam(..., json_schema_extra={"pattern": params.ID_PATTERN}), who: Access = Depends(access)
+    ) -> list[list[float]]:
         name = params.robot(robot)
+        who.select((name,), "robot")  # 403 before 404: a limited token learns nothing of other robots
         if not any(r["robot"] == name for r in fmap.robots()):
             raise ApiError("robot", f"no robot {name!r} in fleet {state.fleet!r}", status=404)
         return fmap.trajectory(name).tolist()
 
     @app.get("/v1/map/extent", summary="World box reached by every node, or null for an empty map")
-    def extent() -> dict | None:
-        box = fmap.extent()
+    def extent(who: Access = Depends(access)) -> dict | None:
+        box = fmap.extent(who.robots)
         if box is None:
             return None
         return {"dim": len(box[0]), "lo": box[0].tolist(), "hi": box[1].tolist()}
@@ -374,7 +366,8 @@ def create_app(state, *, cors_origins: list[str] | None = None, default_variance
         return {"status": "ok", "fleet": state.fleet}
 
     @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
-    def metrics() -> Response:
+    def metrics(who: Access = Depends(access)) -> Response:
+        who.require_fleet("/metrics")  # it counts bytes by robot
         stats = fmap.cache_stats()
         with sync_lock:  # the map counts; the Prometheus counters follow by the difference
             for key, counter in (

@@ -12,7 +12,7 @@ tiles.TileCache (the incremental tile update) and tracers.TracerPool.
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 
@@ -97,7 +97,7 @@ class FleetMap:
         with self._lock:
             return self._nodes.trajectory(robot)
 
-    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """World box of every node's reach, or None for an empty map."""
+    def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """World box of every node's reach (of all robots or of `robots`), or None when there is none."""
         with self._lock:
-            return self._nodes.extent()
+            return self._nodes.extent(robots)

@@ -46,6 +46,15 @@ class ServerMetrics:
             "Requests answered with a tile's previous state while another request updated it",
             registry=r,
         )
+        self.http_refused = Counter(
+            "gmmap_http_refused",
+            "HTTP requests refused: no bearer token (missing), a wrong one (invalid), a robot the token may not "
+            "read (forbidden)",
+            ["reason"],
+            registry=r,
+        )
+        for reason in ("missing", "invalid", "forbidden"):
+            self.http_refused.labels(reason)  # each series shows from the start, at 0
 
     def render(self) -> bytes:
         """The registry in Prometheus text exposition format."""

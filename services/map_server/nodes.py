@@ -8,7 +8,7 @@ Not thread-safe: the FleetMap calls it under its lock.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -153,9 +153,11 @@ class NodeIndex:
         rows = np.fromiter((self._rows[k] for k in keys), dtype=np.int64, count=len(keys))
         return np.all(self._lo[rows] <= hi, axis=1) & np.all(self._hi[rows] >= lo, axis=1)
 
-    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The box of every node's box (of all robots or of `robots`), or None when there is none."""
         n = len(self.keys)
-        return (self._lo[:n].min(axis=0), self._hi[:n].max(axis=0)) if n else None
+        rows = np.arange(n) if robots is None else np.flatnonzero([k.robot in robots for k in self.keys])
+        return (self._lo[rows].min(axis=0), self._hi[rows].max(axis=0)) if len(rows) else None
 
 
 class ChangeLog:
@@ -327,6 +329,6 @@ class NodeStore:
             return np.zeros((0, self.dim or 2))
         return np.array([r.world_pose(n).apply(n.model.origin[None])[0] for _, n in sorted(r.nodes.items())])
 
-    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """World box of every node's reach, or None for an empty map."""
-        return self._index.extent() if self._index is not None else None
+    def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """World box of every node's reach (of all robots or of `robots`), or None when there is none."""
+        return self._index.extent(robots) if self._index is not None else None

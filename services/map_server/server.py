@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import signal
+import ssl
 import sys
 import threading
 import time
@@ -35,11 +36,12 @@ from services.api import params  # one set of limits for both APIs
 from services.config import summary
 from services.zenoh_config import zenoh_config
 
-from .config import ServerConfig
+from .config import ServerConfig, split_address
 from .fleet_map import FleetMap
 from .ingest import Ingest
 from .state import ServerState
 from .store import Store
+from .tokens import TokenFile
 
 log = logging.getLogger("gmmap.server")
 
@@ -133,8 +135,20 @@ class ZenohSide:
         self.session.close()
 
 
-def start_http(state: ServerState, address: str, variance: float):
-    """uvicorn on host:port in a thread; (server, thread), or None when the API is absent."""
+def check_tls_files(cert: str, key: str) -> None:
+    """OSError naming the files unless they are a PEM certificate and its key: said before the server
+    starts, where uvicorn would only fail in its thread."""
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as error:
+        raise OSError(
+            f"--http-tls-cert {cert} --http-tls-key {key}: not a PEM certificate and its key ({error})"
+        ) from None
+
+
+def start_http(state: ServerState, options: ServerConfig, variance: float, tokens=None):
+    """uvicorn on options.http in a thread, over TLS when options say so, with `tokens` (a TokenFile)
+    if given; (server, thread), or None when the API is absent."""
     try:
         from services.api.app import create_app
     except ImportError as error:
@@ -142,16 +156,18 @@ def start_http(state: ServerState, address: str, variance: float):
         return None
     import uvicorn
 
-    host, _, port = address.rpartition(":")
+    host, port = split_address(options.http)
     # h11 refuses a request head (request line with its query string, and headers) over this size
     # with a plain 400; 1 MiB holds the longest GET the API accepts (10,000 points).
     config = uvicorn.Config(
-        create_app(state, default_variance=variance),
-        host=host or "127.0.0.1",
-        port=int(port),
+        create_app(state, default_variance=variance, tokens=tokens),
+        host=host,
+        port=port,
         log_level="warning",
         lifespan="on",
         h11_max_incomplete_event_size=MAX_REQUEST_HEAD,
+        ssl_certfile=options.http_tls_cert,
+        ssl_keyfile=options.http_tls_key,
     )
     server = uvicorn.Server(config)
     # uvicorn leaves signal handling to the main thread when it runs elsewhere.
@@ -159,14 +175,29 @@ def start_http(state: ServerState, address: str, variance: float):
     thread.start()
     while not server.started:
         if not thread.is_alive():
-            raise OSError(f"HTTP server could not start on {address}")
+            raise OSError(f"HTTP server could not start on {options.http}")
         time.sleep(0.01)
     return server, thread
+
+
+def http_banner(options: ServerConfig, tokens) -> str:
+    scheme = "https" if options.http_tls else "http"
+    who = f"{len(tokens.clients)} token clients" if tokens is not None else "no tokens"
+    return f"{scheme}://{options.http} ({who})"
 
 
 def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig()) -> int:
     started = time.perf_counter()
     print(f"gmmap server config: {summary(server=options, reconstruction=reconstruction)}", file=sys.stderr, flush=True)
+    options.check_http()  # before anything is opened: a refusal leaves nothing behind
+    tokens = None
+    if options.http and options.http_tokens:
+        tokens = TokenFile(options.http_tokens)
+    if options.http and options.http_tls:
+        check_tls_files(options.http_tls_cert, options.http_tls_key)
+    exposure = options.http_exposure()
+    if exposure:
+        print(f"gmmap server: WARNING {exposure}", file=sys.stderr, flush=True)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
@@ -194,12 +225,12 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
         except zenoh.ZError as error:
             raise OSError(f"cannot open the Zenoh session: {error}") from None
         if options.http:
-            http = start_http(state, options.http, reconstruction.variance)
+            http = start_http(state, options, reconstruction.variance, tokens)
         print(
             f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
             f"zenoh {','.join(options.listen) or '-'}"
             f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
-            f"http {'http://' + options.http if http else 'off'}, {time.perf_counter() - started:.1f} s",
+            f"http {http_banner(options, tokens) if http else 'off'}, {time.perf_counter() - started:.1f} s",
             file=sys.stderr,
             flush=True,
         )

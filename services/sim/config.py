@@ -21,6 +21,8 @@ class SimConfig:
     http_clients: int = 0  # concurrent HTTP clients fetching map tiles meanwhile
     report: str | None = None  # a folder for report.json, report.md and the plots; None: none
     fleet: str = "default"
+    http_token: str | None = None  # a file holding the bearer token that the sim's (or demo's) HTTP clients send
+    http_ca: str | None = None  # PEM CA bundle that signed the server's TLS certificate; None: the system's
 
     def __post_init__(self):
         require_count("sim.robots", self.robots)

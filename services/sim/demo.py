@@ -8,31 +8,36 @@ import signal
 import sys
 import tempfile
 import threading
-import urllib.request
 from pathlib import Path
 
+from services.http_client import HttpClient
+from services.map_server.config import ServerConfig
+from services.sim.config import SimConfig
 from services.sim.fleet import SimSource, robot_name
-from services.sim.processes import Processes, free_port
+from services.sim.processes import Processes, free_port, http_security_args
 
 ROBOTS = 3
 RATE = 5.0  # scans per second per robot
 FOREVER_S = 3600.0  # --duration 0: the robots drive for an hour, the server runs until Ctrl-C
 
 
-def stored_scans(base: str) -> int:
+def stored_scans(http: HttpClient) -> int:
     try:
-        with urllib.request.urlopen(f"{base}/v1/robots", timeout=5) as response:
-            return sum(r["nodes"] for r in json.loads(response.read()))
+        return sum(r["nodes"] for r in json.loads(http.get("/v1/robots", timeout=5)))
     except OSError:
         return 0
 
 
-def run_demo(http: str, duration: float) -> int:
+def run_demo(server: ServerConfig, clients: SimConfig, duration: float) -> int:
+    """The demo's server serves `server.http` with its TLS, tokens or --http-insecure; the progress
+    bar reads it with `clients`' --http-token and --http-ca."""
     from tqdm import tqdm
 
-    host, _, port = http.rpartition(":")
-    base = f"http://{'127.0.0.1' if host in ('', '0.0.0.0') else host}:{port}"
-    print(f"gmmap demo: the viewer is at http://{http}/ ({ROBOTS} robots in the office; Ctrl-C stops)", flush=True)
+    server.check_http()  # refused here, before any process starts
+    http = HttpClient.for_server(server, clients.http_token, clients.http_ca)
+    scheme = "https" if server.http_tls else "http"
+    where = f"{scheme}://{server.http}/"
+    print(f"gmmap demo: the viewer is at {where} ({ROBOTS} robots in the office; Ctrl-C stops)", flush=True)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -42,7 +47,7 @@ def run_demo(http: str, duration: float) -> int:
         procs = Processes(Path(tmp))
         try:
             zenoh_port = free_port()
-            procs.server(zenoh_port, http, Path(tmp) / "data")
+            procs.server(zenoh_port, server.http, Path(tmp) / "data", "default", *http_security_args(server))
             for i, name in enumerate(names):
                 procs.agent(name, str(SimSource("office", i, ROBOTS)), zenoh_port, RATE, scans)
             with tqdm(total=ROBOTS * scans, desc="scans in the map", unit="scan", file=sys.stderr) as bar:
@@ -50,7 +55,7 @@ def run_demo(http: str, duration: float) -> int:
                     if procs.reap("server") is not None:
                         print(f"gmmap demo: the server stopped:\n{procs.log_tail('server')}", file=sys.stderr)
                         return 1
-                    bar.n = stored_scans(base)
+                    bar.n = stored_scans(http)
                     bar.refresh()
                     if duration and all(procs.reap(f"agent-{n}") is not None for n in names):
                         break  # the robots have driven for --duration and everything is stored

@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+from services.map_server.config import ServerConfig
 from services.sim.fleet import SimSource
 
 ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python -m services.cli`
@@ -32,6 +33,19 @@ def _die_with_parent() -> None:
 
 
 PR_SET_PDEATHSIG = 1
+
+
+def http_security_args(server: ServerConfig) -> tuple[str, ...]:
+    """`gmmap server` flags for the TLS, tokens and --http-insecure of `server`, with absolute paths:
+    a child runs in its work directory."""
+    files = (
+        ("--http-tls-cert", server.http_tls_cert),
+        ("--http-tls-key", server.http_tls_key),
+        ("--http-tokens", server.http_tokens),
+    )
+    args = [arg for flag, path in files if path for arg in (flag, os.path.abspath(path))]
+    return (*args, "--http-insecure") if server.http_insecure else tuple(args)
+
 
 # A simulated robot publishes every scan (no keyframe policy), so load and bandwidth figures compare.
 EVERY_SCAN = ("--keyframe-distance", "0", "--keyframe-angle", "0", "--keyframe-period", "0")

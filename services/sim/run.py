@@ -4,13 +4,15 @@ One map server and the robots run as processes on 127.0.0.1 (scouting off): each
 full agent (Zenoh session, outbox), several to a process (services.sim.robots). Each
 agent reaches the server through a CountingRelay (its link, bytes counted both ways); a Zenoh
 client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
-the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles. When
+the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles (over TLS and
+with a bearer token when the server's settings and --http-token/--http-ca say so). When
 every agent is done (all its scans acknowledged) the server stops and the record is graded
 (services.sim.grading) and, with --report, written out (services.sim.render).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -23,7 +25,6 @@ import tempfile
 import threading
 import time
 import urllib.error
-import urllib.request
 from collections import Counter
 from pathlib import Path
 
@@ -32,10 +33,11 @@ import numpy as np
 from gmm_core import Grid
 from services.config import GmmapConfig
 from services.host import cpu_cores
+from services.http_client import HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
-from services.sim.processes import Processes, free_port
+from services.sim.processes import Processes, free_port, http_security_args
 from services.sim.record import RunRecord, Snapshot, evaluation_grid, slabs
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
@@ -46,19 +48,17 @@ SNAPSHOT_CELLS = 500_000  # per request: the server's map lock is free for inges
 ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
 
 
-def fetch_occupancy(base: str, grid: Grid) -> np.ndarray:
+def fetch_occupancy(client: HttpClient, grid: Grid) -> np.ndarray:
     """GET /v1/occupancy as npy, slab by slab."""
     arrays = []
     for slab in slabs(grid, SNAPSHOT_CELLS):
         bbox = ",".join(repr(float(v)) for v in (*slab.origin, *slab.upper))
-        with urllib.request.urlopen(
-            f"{base}/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy", timeout=300
-        ) as response:
-            arrays.append(np.load(io.BytesIO(response.read())))
+        body = client.get(f"/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy", timeout=300)
+        arrays.append(np.load(io.BytesIO(body)))
     return np.concatenate(arrays)
 
 
-def tile_urls(base: str, grid: Grid) -> list[str]:
+def tile_urls(grid: Grid) -> list[str]:
     """The viewer's tiles over the graded box: TILE cells a side, at 1, 2 and 4 times the base resolution."""
     base_res = 0.05 if grid.dim == 2 else 0.1  # a 3D tile spans the box's height as well
     urls = []
@@ -69,15 +69,13 @@ def tile_urls(base: str, grid: Grid) -> list[str]:
                 lo, hi = [ix * size, iy * size], [(ix + 1) * size, (iy + 1) * size]
                 if grid.dim == 3:
                     lo, hi = lo + [grid.origin[2]], hi + [grid.upper[2]]
-                urls.append(
-                    f"{base}/v1/occupancy?bbox={','.join(f'{v:.4f}' for v in lo + hi)}&resolution={res}&format=png"
-                )
+                urls.append(f"/v1/occupancy?bbox={','.join(f'{v:.4f}' for v in lo + hi)}&resolution={res}&format=png")
     return urls
 
 
-def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
-    """`clients` threads fetching random tiles until `stop` is set; puts (latencies, errors by kind)
-    on `results`."""
+def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) -> None:
+    """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set; puts (latencies,
+    errors by kind) on `results`."""
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
@@ -85,7 +83,7 @@ def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
         while not stop.is_set():
             start = time.perf_counter()
             try:
-                urllib.request.urlopen(rng.choice(urls), timeout=60).read()
+                http.get(rng.choice(urls), timeout=60)
                 with lock:
                     latencies.append(time.perf_counter() - start)
             except OSError as error:
@@ -104,10 +102,11 @@ def fetch_tiles(urls: list[str], clients: int, stop, results) -> None:
 class TileClients:
     """HTTP clients in a process of their own, so that their threads do not hold up the relays' and the tap's."""
 
-    def __init__(self, urls: list[str], clients: int):
+    def __init__(self, http: HttpClient, urls: list[str], clients: int):
         spawn = multiprocessing.get_context("spawn")  # no fork of a process running Zenoh
         self._stop, self._results = spawn.Event(), spawn.Queue()
-        self._process = spawn.Process(target=fetch_tiles, args=(urls, clients, self._stop, self._results), daemon=True)
+        args = (http, urls, clients, self._stop, self._results)
+        self._process = spawn.Process(target=fetch_tiles, args=args, daemon=True)
         self._process.start()
 
     def stop(self) -> tuple[list[float], dict[str, int]]:
@@ -172,8 +171,11 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
     cpu_before = usage.ru_utime + usage.ru_stime
     try:
         zport, hport = free_port(), free_port()
-        base = f"http://127.0.0.1:{hport}"
-        procs.server(zport, f"127.0.0.1:{hport}", workdir / "data", o.fleet, "--config", str(settings))
+        server = dataclasses.replace(config.server, http=f"127.0.0.1:{hport}")
+        http = HttpClient.for_server(server, o.http_token, o.http_ca)
+        procs.server(
+            zport, server.http, workdir / "data", o.fleet, "--config", str(settings), *http_security_args(server)
+        )
         tap = WireTap(o.fleet, zport)
         record = RunRecord(config, fleet, grid, correction_interval(o.rate), time.time())
         # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
@@ -198,7 +200,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             )
         group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
         if o.http_clients:
-            clients = TileClients(tile_urls(base, grid), o.http_clients)
+            clients = TileClients(http, tile_urls(grid), o.http_clients)
 
         snapshots_dir = workdir / "snapshots"
         snapshots_dir.mkdir()
@@ -207,7 +209,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             """Fetch and keep the whole graded map; the seconds it took."""
             t, stored = time.time(), tap.stored_per_robot()
             path = snapshots_dir / f"{len(record.snapshots):03d}.npy"
-            np.save(path, fetch_occupancy(base, grid))
+            np.save(path, fetch_occupancy(http, grid))
             record.snapshots.append(Snapshot(t, stored, path))
             return time.time() - t
 
@@ -237,8 +239,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
                 print(f"gmmap sim: the robots of {g} exited {code}:\n{procs.log_tail(g)}", file=sys.stderr)
         record.agent_exit = {name: procs.running[g].returncode for name, g in group_of.items()}
         snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
-        with urllib.request.urlopen(f"{base}/v1/robots", timeout=30) as response:
-            record.components = {r["robot"]: r["components"] for r in json.loads(response.read())}
+        record.components = {r["robot"]: r["components"] for r in json.loads(http.get("/v1/robots", timeout=30))}
         procs.stop("server")
         record.wall_s = time.time() - record.started
         record.events = list(tap.events)

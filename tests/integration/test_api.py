@@ -6,7 +6,6 @@ import io
 import json
 import re
 import shutil
-import subprocess
 import threading
 import time
 from urllib.parse import quote
@@ -23,6 +22,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
 from services.render import occupancy_png, probability_png
+from support.browser import headless_chromium
 from support.net import get, post
 from support.uvicorn_thread import Server
 
@@ -290,27 +290,6 @@ def test_viewer_is_served(server):
     assert status == 200 and headers["Content-Type"].startswith("text/html")
     assert b"<canvas" in body and b"v1/occupancy" in body and b"http" not in body.split(b"<script>")[1]
     assert f"const DEFAULT_VARIANCE = {DEFAULT_VARIANCE!r};".encode() in body  # the server's, written in
-
-
-def headless_chromium(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    command = [
-        "chromium",
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--disable-dev-shm-usage",
-        f"--user-data-dir={tmp_path / 'profile'}",
-        "--window-size=800,600",
-        "--hide-scrollbars",
-        "--virtual-time-budget=8000",
-        *args,
-    ]
-    return subprocess.run(command, capture_output=True, timeout=120, check=False)
 
 
 @pytest.mark.skipif(

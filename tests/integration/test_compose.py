@@ -66,6 +66,9 @@ def test_every_command_parses_as_gmmap(compose):
             assert server.zenoh_connect == ("tcp/router:7447",) and server.listen == (), name
             host, port = server.http.split(":")
             assert host == "0.0.0.0" and service["ports"] == [f"127.0.0.1:8000:{port}"]
+            # Published on the host's loopback only, so served without TLS or tokens: explicitly, as it must be.
+            assert server.http_insecure and not (server.http_tls or server.http_tokens)
+            server.check_http()
             assert server.data_dir in [v.split(":")[1] for v in service["volumes"]]
         else:
             agent = config.agent

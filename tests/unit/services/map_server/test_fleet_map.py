@@ -223,6 +223,21 @@ def test_query_touches_only_nodes_that_reach_it(fitted):
     assert np.all(lo < GRID.upper) and np.all(hi > GRID.origin)
 
 
+def test_extent_of_some_robots_is_the_box_of_their_nodes_alone(fitted):
+    """What a token limited to some robots is told of the map's extent."""
+    scans, models = fitted
+    fleet, alone = FleetMap("f"), FleetMap("f")
+    for s, m in zip(scans[:60], models[:60]):
+        fleet.add_scan(ScanMessage("f", "a", s.index, s.stamp, m, s.pose))
+        alone.add_scan(ScanMessage("f", "a", s.index, s.stamp, m, s.pose))
+    far = Pose.from_xytheta(300.0, -200.0, 0.0)  # robot b, far from a: it widens the whole map's box
+    for s, m in zip(scans[60:], models[60:]):
+        fleet.add_scan(ScanMessage("f", "b", s.index, s.stamp, m, far.compose(s.pose)))
+    assert [np.array_equal(x, y) for x, y in zip(fleet.extent(["a"]), alone.extent())] == [True, True]
+    assert fleet.extent(["a", "b"])[1][0] > 250 and np.array_equal(fleet.extent(["a", "b"])[1], fleet.extent()[1])
+    assert fleet.extent(["nobody"]) is None and fleet.extent([]) is None and FleetMap("e").extent(["a"]) is None
+
+
 def test_dimension_mismatch_is_refused(fitted):
     scans, models = fitted
     fleet = FleetMap("f")

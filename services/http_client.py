@@ -1,0 +1,63 @@
+"""An HTTP client of a map server's API (the sim's and the demo's): a bearer token and the CA to
+trust, both read from files, so neither appears on a command line."""
+
+from __future__ import annotations
+
+import functools
+import ssl
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.map_server.config import ServerConfig, split_address
+
+
+def read_token(path: str | Path) -> str:
+    """The one word of a token file (what `gmmap token` printed); ValueError naming the file."""
+    try:
+        words = Path(path).read_text(encoding="utf-8").split()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"--http-token: cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
+    if len(words) != 1:
+        raise ValueError(f"--http-token: {path} must hold the token alone, got {len(words)} words")
+    return words[0]
+
+
+@functools.lru_cache(maxsize=8)
+def tls_context(ca_file: str | None) -> ssl.SSLContext:
+    """Verifies the server's certificate and name against `ca_file` (None: the system's CAs)."""
+    try:
+        return ssl.create_default_context(cafile=ca_file)
+    except (OSError, ssl.SSLError) as error:
+        raise ValueError(f"--http-ca: {ca_file} is not a PEM CA bundle ({error})") from None
+
+
+@dataclass(frozen=True)
+class HttpClient:
+    """GETs under `base` (http://HOST:PORT or https://...). Plain values: it pickles into the processes
+    of the sim's tile clients."""
+
+    base: str
+    token: str | None = None
+    ca_file: str | None = None
+
+    @classmethod
+    def for_server(cls, server: ServerConfig, token_file: str | None, ca_file: str | None) -> HttpClient:
+        """A client of `server` on this machine, at 127.0.0.1 when it binds every address."""
+        host, port = split_address(server.http)
+        host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+        host = f"[{host}]" if ":" in host else host
+        if server.http_tokens and not token_file:
+            raise ValueError("--http-token: the server has tokens (--http-tokens): give a file holding one of them")
+        token = read_token(token_file) if token_file else None
+        if ca_file:
+            tls_context(ca_file)  # a bad CA file is said now, not at the first request
+        return cls(f"{'https' if server.http_tls else 'http'}://{host}:{port}", token, ca_file)
+
+    def get(self, path: str, timeout: float) -> bytes:
+        """The body of GET `path`; urllib's HTTPError (an OSError) for a 4xx or 5xx, URLError when unreachable."""
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        context = tls_context(self.ca_file) if self.base.startswith("https:") else None
+        request = urllib.request.Request(self.base + path, headers=headers)
+        with urllib.request.urlopen(request, timeout=timeout, context=context) as response:
+            return response.read()
