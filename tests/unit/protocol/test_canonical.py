@@ -146,14 +146,18 @@ def test_2d_theta_minus_pi_is_sent_as_pi():
     assert raw_poses(PoseGraphUpdate("f", "r", 1, ((1, minus_pi),)))[0, 2] == math.pi
 
 
-def test_f32_scans_and_small_messages_are_fixed_points_of_decode_and_encode():
+def test_2d_f32_scans_and_messages_without_poses_are_fixed_points_of_decode_and_encode():
+    """A float32 theta survives the rotation matrix the decoder makes of it (its float64 error is
+    far below half a float32 step); a 3D quaternion is normalised on the way and may not."""
     rng = np.random.default_rng(5)
-    for dim in (2, 3):
-        for _ in range(20):
-            data = encode(scan_message(rng, dim, 12, 2), "f32")
-            assert encode(decode(data), "f32") == data
-    update = PoseGraphUpdate("f", "r", 3, ((4, Pose.from_xytheta(1.0, 2.0, 0.25)),), Pose.identity(2))
-    for message in (update, Ack("f", "r", "s", "scan", (1, 2), (3,)), MapQuery("f", [0, 0], [1, 2], 0.1, ("a",))):
+    for _ in range(40):
+        data = encode(scan_message(rng, 2, 12, 2), "f32")
+        assert encode(decode(data), "f32") == data
+    for message in (
+        Ack("f", "r", "s", "scan", (1, 2), (3,)),
+        Rejection("f", "r", "s", "poses", (9,), "quota", "voll"),
+        MapQuery("f", [0.1, 0.2], [1.0, 2.5], 0.1, ("a",)),
+    ):
         assert encode(decode(encode(message))) == encode(message)
 
 
