@@ -15,7 +15,6 @@ import msgpack
 import numpy as np
 
 from gmm_core.mixture import Mixture
-from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.errors import ProtocolError
 from protocol.keys import MAX_NODE, check_id
@@ -30,7 +29,7 @@ from protocol.messages import (
     StoreInventory,
 )
 from protocol.quantize import dequantize, quantize, record_bits, stream_bytes
-from protocol.wire import Fields
+from protocol.wire import Fields, float32_bytes, float64_bytes, pose_bytes, pose_from_vector, pose_width
 
 VERSION = 2
 # What changed from the previous version, for the error an old peer's message gets.
@@ -40,7 +39,6 @@ MAX_COMPONENTS = 4096  # default cap on occupied + free components of one scan
 MAX_BYTES = 1 << 20  # default cap on a payload, checked before unpacking
 MAX_LIST = 65536  # msgpack arrays (robot lists, grid shapes) are short
 WEIGHT_SUM_TOLERANCE = 1e-3
-QUATERNION_NORM_TOLERANCE = 1e-3
 SYMMETRY_TOLERANCE = 1e-6  # relative to the component's largest covariance entry
 UNCHECKED = "unchecked error"  # prefix of errors caught by the safety net, not a named check
 
@@ -82,6 +80,7 @@ def decode(
             max_array_len=MAX_LIST,
             max_map_len=64,
             max_ext_len=0,
+            ext_hook=_refuse_ext,  # max_ext_len lets an ext of 0 bytes through
         )
     except Exception as error:  # msgpack raises several types (FormatError, ValueError, StackError, ...)
         raise ProtocolError("message", f"malformed msgpack: {type(error).__name__}: {error}") from None
@@ -94,6 +93,10 @@ def decode(
     if expect is not None and not isinstance(message, expect):
         raise ProtocolError("type", f"expected {expect.__name__}, got {type(message).__name__}")
     return message
+
+
+def _refuse_ext(code, data):
+    raise ValueError(f"ext type {code} is not part of the protocol")
 
 
 def _map_without_duplicates(pairs):
@@ -114,45 +117,6 @@ def _decode_message(f: Fields, max_components: int) -> Message:
     if decoder is None:
         raise ProtocolError("type", f"unknown message type {code!r:.80}")
     return decoder(f, max_components)
-
-
-# --- poses: 2D [x, y, theta], 3D [tx, ty, tz, qw, qx, qy, qz]
-
-
-def _pose_vector(pose: Pose) -> np.ndarray:
-    if pose.dim == 2:
-        return np.array(pose.as_xytheta())
-    return np.concatenate([pose.t, pose.as_quaternion()])
-
-
-def _pose_from_vector(vector: np.ndarray, field: str) -> Pose:
-    vector = vector.astype(np.float64)
-    if len(vector) == 3:
-        return Pose.from_xytheta(*vector)
-    norm = np.linalg.norm(vector[3:])
-    if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
-        raise ProtocolError(field, f"quaternion norm {norm:.6g} is not 1")
-    return Pose.from_quaternion(vector[:3], vector[3:])
-
-
-def _pose_width(dim: int) -> int:
-    return 3 if dim == 2 else 7
-
-
-def _float32(values, field: str) -> bytes:
-    """Little-endian float32 bytes, refusing what float32 cannot hold (NaN, inf, > 3.4e38)."""
-    with np.errstate(over="ignore"):
-        array = np.asarray(values, dtype="<f4")
-    if not np.isfinite(array).all():
-        raise ProtocolError(field, "must be finite in float32")
-    return array.tobytes()
-
-
-def _float64(values, field: str) -> bytes:
-    array = np.asarray(values, dtype="<f8")
-    if not np.isfinite(array).all():
-        raise ProtocolError(field, "must be finite")
-    return array.tobytes()
 
 
 # --- mixtures
@@ -202,15 +166,15 @@ def _encode_mixture(mixture: Mixture, encoding: str, field: str) -> dict:
     if encoding == "f32":
         rows, cols = np.triu_indices(d)
         table = np.concatenate([mixture.means, mixture.covariances[:, rows, cols], mixture.weights[:, None]], axis=1)
-        packed = _float32(table, f"{field}.components")
+        packed = float32_bytes(table, f"{field}.components")
         # float32 rounding can break positive definiteness of a thin component: check what we send
         _check_mixture(_mixture_from_table(np.frombuffer(packed, "<f4").reshape(k, _f32_columns(d)), d, 0), field)
         return {"N": mixture.support, "c": packed}
-    _float32(mixture.means, f"{field}.means")  # the box of the means is sent as float32
+    float32_bytes(mixture.means, f"{field}.means")  # the box of the means is sent as float32
     bounds, stream = quantize(mixture)
     wire = {"N": mixture.support, "c": stream}
     if k:  # an empty mixture has no box of means
-        wire["b"] = bounds.astype("<f4").tobytes()
+        wire["b"] = float32_bytes(bounds, f"{field}.bounds")
     return wire
 
 
@@ -258,10 +222,10 @@ def _encode_scan(message: ScanMessage, encoding: str) -> dict:
         "f": message.fleet,
         "r": message.robot,
         "n": message.node,
-        "s": message.stamp,
+        "s": message.stamp + 0.0,  # + 0.0: a negative zero is sent as 0.0
         "d": message.dim,
-        "p": _float32(_pose_vector(message.pose), "pose"),
-        "o": _float32(np.append(model.origin, model.max_range), "origin"),
+        "p": pose_bytes([message.pose], "<f4", "pose"),
+        "o": float32_bytes(np.append(model.origin, model.max_range), "origin"),
         "O": _encode_mixture(model.occupied, encoding, "occupied"),
         "F": _encode_mixture(model.free, encoding, "free"),
     }
@@ -274,7 +238,7 @@ def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
     node, stamp = f.int("n", "node"), f.float("s", "stamp")
     dim = f.int("d", "dimension", 2, 3)
-    pose = _pose_from_vector(f.array("p", "pose", "<f4", _pose_width(dim)), "pose")
+    pose = pose_from_vector(f.array("p", "pose", "<f4", pose_width(dim)), "pose")
     sensor = f.array("o", "origin", "<f4", dim + 1)  # origin, then max_range
     origin, max_range = sensor[:dim], float(sensor[dim])
     if max_range <= 0:
@@ -294,16 +258,14 @@ def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
 
 
 def _encode_poses(message: PoseGraphUpdate, encoding: str) -> dict:
-    width = _pose_width(message.dim)
-    vectors = np.array([_pose_vector(pose) for _, pose in message.poses]).reshape(-1, width)
-    anchor = None if message.anchor is None else _float64(_pose_vector(message.anchor), "anchor")
+    anchor = None if message.anchor is None else pose_bytes([message.anchor], "<f8", "anchor")
     return {
         "f": message.fleet,
         "r": message.robot,
         "d": message.dim,
         "rev": message.revision,
         "nodes": np.array([node for node, _ in message.poses], dtype="<u8").tobytes(),
-        "poses": _float64(vectors, "poses.poses"),
+        "poses": pose_bytes([pose for _, pose in message.poses], "<f8", "poses.poses"),
         "anchor": anchor,
     }
 
@@ -312,11 +274,11 @@ def _decode_poses(f: Fields, max_components: int) -> PoseGraphUpdate:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
     dim, revision = f.int("d", "dimension", 2, 3), f.int("rev", "revision")
     nodes = _counts(f.array("nodes", "poses.nodes", "<u8"), "poses.nodes")
-    width = _pose_width(dim)
+    width = pose_width(dim)
     vectors = f.array("poses", "poses.poses", "<f8", len(nodes) * width).reshape(len(nodes), width)
     anchor = f.array("anchor", "anchor", "<f8", width, nullable=True)
-    poses = tuple((node, _pose_from_vector(vector, "poses.poses")) for node, vector in zip(nodes, vectors))
-    anchor_pose = None if anchor is None else _pose_from_vector(anchor, "anchor")
+    poses = tuple((node, pose_from_vector(vector, "poses.poses")) for node, vector in zip(nodes, vectors))
+    anchor_pose = None if anchor is None else pose_from_vector(anchor, "anchor")
     return PoseGraphUpdate(fleet, robot, revision, poses, anchor_pose)
 
 
@@ -390,9 +352,9 @@ def _encode_map_query(message: MapQuery, encoding: str) -> dict:
     return {
         "f": message.fleet,
         "d": message.dim,
-        "lo": message.lo.astype("<f8").tobytes(),
-        "hi": message.hi.astype("<f8").tobytes(),
-        "res": message.resolution,
+        "lo": float64_bytes(message.lo, "bbox.lo"),
+        "hi": float64_bytes(message.hi, "bbox.hi"),
+        "res": message.resolution + 0.0,
         "robots": None if message.robots is None else list(message.robots),
     }
 
@@ -415,10 +377,10 @@ def _encode_map_reply(message: MapReply, encoding: str) -> dict:
     return {
         "f": message.fleet,
         "d": message.dim,
-        "origin": message.origin.astype("<f8").tobytes(),
-        "res": message.resolution,
+        "origin": float64_bytes(message.origin, "origin"),
+        "res": message.resolution + 0.0,
         "shape": list(message.probabilities.shape),
-        "p": message.probabilities.astype("<f4").tobytes(),
+        "p": float32_bytes(message.probabilities, "probabilities"),
     }
 
 

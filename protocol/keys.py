@@ -2,7 +2,8 @@
 
     gmmap/<fleet>/<robot>/scan/<node>   ScanMessage        (robot -> server, put)
     gmmap/<fleet>/<robot>/poses         PoseGraphUpdate    (robot -> server, put)
-    gmmap/<fleet>/<robot>/ack           Ack                (server -> robot, put)
+    gmmap/<fleet>/<robot>/ack           Ack, Rejection     (server -> robot, put)
+    gmmap/<fleet>/<robot>/inventory     StoreInventory     (queryable of the map server: robot gets)
     gmmap/<fleet>/map/occupancy         MapQuery/MapReply  (queryable of the map server)
 
 Ids match `[A-Za-z0-9_-]{1,64}`, so they can never contain the key separators or the

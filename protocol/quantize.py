@@ -21,7 +21,9 @@ LOG_STD_BITS = 9
 LOG_STD_MIN = math.log(1e-4)  # std 0.1 mm; smaller standard deviations are clamped up
 LOG_STD_MAX = math.log(1e2)  # std 100 m; larger ones are clamped down
 LOG_STD_STEP = (LOG_STD_MAX - LOG_STD_MIN) / (2**LOG_STD_BITS - 1)  # 2.7 % per step
+VARIANCE_FLOOR = 1e-8  # eigenvalues are raised to it before the log: any value at or below (1e-4)^2 codes as 0
 ANGLE_BITS = 7  # 2D: angle of the first principal axis in [0, pi/2), 0.70 deg per step
+QUARTER_TURN = 0.5 * math.pi
 QUAT_BITS = 9  # 3D: each of the smallest three quaternion components in [-1/sqrt2, 1/sqrt2]
 QUAT_HALF_RANGE = 1 / math.sqrt(2)
 WEIGHT_BITS = 7
@@ -129,8 +131,7 @@ def _quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
         ],
         axis=1,
     )
-    q = candidates[np.arange(len(R)), np.argmax(diag, axis=1)]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    return _unit(candidates[np.arange(len(R)), np.argmax(diag, axis=1)])
 
 
 def _matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
@@ -152,7 +153,9 @@ def quantize(mixture: Mixture) -> tuple[np.ndarray, bytes]:
     """Mixture -> (bounds, stream): bounds is float32 [lo_0..lo_d-1, hi_0..hi_d-1] of the means.
 
     Means must fit float32, covariances be symmetric positive definite and weights be
-    non-negative with a positive sum (the codec checks before calling).
+    non-negative with a positive sum (the codec checks before calling). The stream is canonical:
+    where several records would decode alike (the sign of an axis, the frame of equal axes) the
+    encoder picks the one docs/PROTOCOL.md names.
     """
     d, k = mixture.dim, mixture.n_components
     if k == 0:
@@ -164,12 +167,13 @@ def quantize(mixture: Mixture) -> tuple[np.ndarray, bytes]:
     covs = 0.5 * (mixture.covariances + np.swapaxes(mixture.covariances, 1, 2))
     eigenvalues, axes = np.linalg.eigh(covs)  # ascending; columns of `axes` are the principal axes
     # eigh can return a tiny negative eigenvalue for a thin component that Cholesky accepts
-    log_std = 0.5 * np.log(np.maximum(eigenvalues, math.exp(2 * LOG_STD_MIN)))
+    log_std = 0.5 * np.log(np.maximum(eigenvalues, VARIANCE_FLOOR))
+    std_codes = _round_clamp((log_std - LOG_STD_MIN) / LOG_STD_STEP, LOG_STD_CODE_MAX)  # ascending too
     if d == 2:
-        rotation_codes, log_std = _quantize_angle(axes, log_std)
+        rotation_codes, swap = _quantize_angle(axes, std_codes[:, 0] == std_codes[:, 1])
+        std_codes = np.where(swap[:, None], std_codes[:, ::-1], std_codes)
     else:
-        rotation_codes = _quantize_rotation(axes)
-    std_codes = np.clip(np.rint((log_std - LOG_STD_MIN) / LOG_STD_STEP), 0, LOG_STD_CODE_MAX)
+        rotation_codes = _quantize_quaternion(_principal_quaternion(axes, std_codes))
 
     with np.errstate(divide="ignore"):  # a zero weight goes to the smallest code
         octaves = np.log2(mixture.weights / mixture.weights.max())
@@ -189,7 +193,7 @@ def dequantize(bounds: np.ndarray, stream: bytes, n_components: int, dim: int, f
     means = lo + mean_codes * ((hi - lo) / (2 ** MEAN_BITS[dim] - 1))
     log_std = LOG_STD_MIN + np.stack(columns[dim : 2 * dim], axis=1) * LOG_STD_STEP
     if dim == 2:
-        theta = columns[2 * dim] * (0.5 * np.pi / ANGLE_STEPS)
+        theta = columns[2 * dim] * (QUARTER_TURN / ANGLE_STEPS)
         c, s = np.cos(theta), np.sin(theta)
         rotations = np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)
     else:
@@ -201,36 +205,72 @@ def dequantize(bounds: np.ndarray, stream: bytes, n_components: int, dim: int, f
     return Mixture(weights / weights.sum(), means, covs, 0)
 
 
+def _round_clamp(values: np.ndarray, top: int) -> np.ndarray:
+    """Round half to even (IEEE 754 roundTiesToEven, C rint), then clamp to [0, top]."""
+    return np.clip(np.rint(values), 0, top)
+
+
 def _quantize_means(means: np.ndarray, lo: np.ndarray, hi: np.ndarray, bits: int) -> np.ndarray:
     top = 2**bits - 1
     span = hi.astype(np.float64) - lo.astype(np.float64)
     scale = np.divide(top, span, out=np.zeros_like(span), where=span > 0)  # a flat axis codes as 0
-    return np.clip(np.rint((means - lo) * scale), 0, top)
+    return _round_clamp((means - lo) * scale, top)
 
 
-def _quantize_angle(axes: np.ndarray, log_std: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-    """2D: the first axis' angle folded into [0, pi/2). Turning the frame by pi/2 swaps the two
-    axes, so a fold by an odd number of quarter turns swaps the standard deviations."""
+def _quantize_angle(axes: np.ndarray, isotropic: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """2D: the first axis' angle folded into [0, pi/2), and whether the stds swap: turning the frame
+    by pi/2 swaps the two axes, so a fold by an odd number of quarter turns swaps them. The sign
+    of an axis turns it by pi, an even fold, so eigh's signs do not matter. Equal std codes decode
+    to a circle whatever the angle: those components send angle 0, unswapped."""
     theta = np.arctan2(axes[:, 1, 0], axes[:, 0, 0])
-    quarter_turns = np.floor(theta / (0.5 * np.pi))
-    code = np.rint((theta - quarter_turns * 0.5 * np.pi) / (0.5 * np.pi) * ANGLE_STEPS)
+    quarter_turns = np.floor(theta / QUARTER_TURN)
+    code = np.rint((theta - quarter_turns * QUARTER_TURN) / QUARTER_TURN * ANGLE_STEPS)
     swap = (quarter_turns.astype(np.int64) % 2 == 1) ^ (code == ANGLE_STEPS)  # pi/2 wraps to 0
-    log_std = np.where(swap[:, None], log_std[:, ::-1], log_std)
-    return [code % ANGLE_STEPS], log_std
+    return [np.where(isotropic, 0, code % ANGLE_STEPS)], swap & ~isotropic
 
 
-def _quantize_rotation(axes: np.ndarray) -> list[np.ndarray]:
-    """3D: principal axes -> quaternion -> index of its largest component (dropped, made
-    positive since q and -q are one rotation) and the other three in index order."""
+def _lead_sign(vectors: np.ndarray) -> np.ndarray:
+    """(K, 3) -> (K,) +1 or -1: the sign of each vector's largest-magnitude entry (the first of equal ones)."""
+    lead = np.take_along_axis(vectors, np.argmax(np.abs(vectors), axis=1)[:, None], axis=1)[:, 0]
+    return np.where(lead < 0, -1.0, 1.0)
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """Quaternions over their norm, summed in a stated order so that other encoders match bit for bit."""
+    w, x, y, z = q.T
+    return q / np.sqrt(((w * w + x * x) + y * y) + z * z)[:, None]
+
+
+def _principal_quaternion(axes: np.ndarray, std_codes: np.ndarray) -> np.ndarray:
+    """3D: (K, 3, 3) eigh axes, (K, 3) ascending std codes -> (K, 4) quaternions of one frame each.
+
+    eigh's signs are arbitrary: axes 0 and 1 get their largest-magnitude entry positive and axis 2
+    completes a right-handed frame. Axes with equal std codes decode alike in any frame within
+    their plane: then only the other axis u counts (its largest entry made positive) and the frame
+    is the smallest rotation taking the coordinate axis onto u; with three equal codes, identity.
+    """
     axes = axes.copy()
-    axes[np.linalg.det(axes) < 0, :, 2] *= -1  # eigh may return a reflection
+    for column in (0, 1):
+        axes[:, :, column] *= _lead_sign(axes[:, :, column])[:, None]
+    axes[np.linalg.det(axes) < 0, :, 2] *= -1
     q = _quaternion_from_matrix(axes)
+    low_pair, high_pair = std_codes[:, 0] == std_codes[:, 1], std_codes[:, 1] == std_codes[:, 2]
+    u = axes[:, :, 2] * _lead_sign(axes[:, :, 2])[:, None]  # low pair: z -> u, q = (1 + u.z, z x u)
+    z_arc = np.stack([1 + u[:, 2], -u[:, 1], u[:, 0], np.zeros(len(u))], axis=1)
+    v = axes[:, :, 0]  # high pair: x -> v, q = (1 + v.x, x x v); v's lead is positive already
+    x_arc = np.stack([1 + v[:, 0], np.zeros(len(v)), -v[:, 2], v[:, 1]], axis=1)
+    q = np.where(low_pair[:, None], _unit(z_arc), np.where(high_pair[:, None], _unit(x_arc), q))
+    return np.where((low_pair & high_pair)[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q)
+
+
+def _quantize_quaternion(q: np.ndarray) -> list[np.ndarray]:
+    """3D: quaternion -> index of its largest-magnitude component (the first of equal ones; dropped,
+    made positive since q and -q are one rotation) and codes of the other three in index order."""
     largest = np.argmax(np.abs(q), axis=1)
-    q *= np.sign(q[np.arange(len(q)), largest])[:, None]
+    q = q * np.sign(q[np.arange(len(q)), largest])[:, None]
     keep = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
     rest = np.take_along_axis(q, keep, axis=1)
-    codes = np.clip(np.rint((rest + QUAT_HALF_RANGE) / (2 * QUAT_HALF_RANGE) * QUAT_MAX), 0, QUAT_MAX)
-    return [largest] + list(codes.T)
+    return [largest] + list(_round_clamp((rest + QUAT_HALF_RANGE) / (2 * QUAT_HALF_RANGE) * QUAT_MAX, QUAT_MAX).T)
 
 
 def _dequantize_rotation(largest: np.ndarray, codes: np.ndarray) -> np.ndarray:

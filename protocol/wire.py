@@ -1,4 +1,5 @@
-"""Reading one msgpack map field by field, each check raising ProtocolError(field).
+"""Reading one msgpack map field by field, each check raising ProtocolError(field), and writing
+floats and poses in their one canonical form (docs/PROTOCOL.md, "Canonical form").
 
 Wire maps come from an untrusted decoder: values can have any msgpack type, so every read
 states the type it wants. bool is rejected where an int is wanted (in Python it is one).
@@ -11,6 +12,7 @@ import math
 
 import numpy as np
 
+from gmm_core.pose import Pose
 from protocol.errors import ProtocolError
 from protocol.keys import MAX_NODE
 
@@ -59,3 +61,69 @@ class Fields:
         if array.dtype.kind == "f" and not np.isfinite(array).all():
             raise ProtocolError(self.name(name), "must be finite (no NaN or inf)")
         return array
+
+
+# --- writing: one byte string per value
+
+
+def float32_bytes(values, field: str) -> bytes:
+    """Little-endian float32 (rounded to nearest, ties to even), refusing what float32 cannot hold
+    (NaN, inf, > 3.4e38); a negative zero is written as 0.0."""
+    with np.errstate(over="ignore"):
+        array = np.asarray(values, dtype="<f4")
+    if not np.isfinite(array).all():
+        raise ProtocolError(field, "must be finite in float32")
+    return (array + 0).tobytes()  # -0.0 + 0 is +0.0 and every other value is unchanged
+
+
+def float64_bytes(values, field: str) -> bytes:
+    """Little-endian float64, finite; a negative zero is written as 0.0."""
+    array = np.asarray(values, dtype="<f8")
+    if not np.isfinite(array).all():
+        raise ProtocolError(field, "must be finite")
+    return (array + 0).tobytes()
+
+
+# --- poses: 2D [x, y, theta], 3D [tx, ty, tz, qw, qx, qy, qz]
+
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def pose_width(dim: int) -> int:
+    return 3 if dim == 2 else 7
+
+
+def pose_vector(pose: Pose) -> np.ndarray:
+    """A pose's wire values in float64: theta = atan2(R10, R00) with -pi sent as pi, or t and the
+    unit quaternion of Pose.as_quaternion (w >= 0)."""
+    if pose.dim == 2:
+        x, y, theta = pose.as_xytheta()
+        return np.array([x, y, math.pi if theta == -math.pi else theta])
+    return np.concatenate([pose.t, pose.as_quaternion()])
+
+
+def pose_bytes(poses, dtype: str, field: str) -> bytes:
+    """Poses as rows of `dtype` ("<f4" or "<f8"). q and -q are one rotation: the first non-zero
+    component of (w, x, y, z) is made positive after rounding, so w = 0 (a half turn) is one form too."""
+    vectors = np.array([pose_vector(pose) for pose in poses], dtype=np.float64)
+    with np.errstate(over="ignore"):
+        array = np.asarray(vectors, dtype=dtype)
+    if not np.isfinite(array).all():
+        raise ProtocolError(field, "must be finite" + (" in float32" if dtype == "<f4" else ""))
+    if array.shape[1:] == (7,):
+        q = array[:, 3:]
+        first = np.take_along_axis(q, np.argmax(q != 0, axis=1)[:, None], axis=1)
+        array[:, 3:] = np.where(first < 0, -q, q)
+    return (array + 0).tobytes()
+
+
+def pose_from_vector(vector: np.ndarray, field: str) -> Pose:
+    """Wire values -> Pose: 2D theta may be any finite number; a 3D quaternion must have a norm
+    within 1e-3 of 1 and is normalised."""
+    vector = vector.astype(np.float64)
+    if len(vector) == 3:
+        return Pose.from_xytheta(*vector)
+    norm = np.linalg.norm(vector[3:])
+    if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
+        raise ProtocolError(field, f"quaternion norm {norm:.6g} is not 1")
+    return Pose.from_quaternion(vector[:3], vector[3:])
