@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -170,7 +171,12 @@ def cmd_server(args) -> int:
 
     _logging(args.verbose)
     config = resolve_config(args)
-    return run_server(config.server, config.reconstruction)
+    code = run_server(config.server, config.reconstruction)
+    # The store is closed and every Ack sent: a worker thread still rendering a large PNG for a
+    # client that will get no answer must not keep the process from exiting (SIGTERM within seconds).
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def cmd_router(args) -> int:

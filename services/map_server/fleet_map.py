@@ -59,6 +59,10 @@ class FleetMap:
         return self._nodes.dim
 
     # -- ingest ---------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop tracing (a server that is stopping); queries after this fail."""
+        self._tracers.close()
+
     def add_scan(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
         """Hold a scan; False if (robot, node) is already held (a resend)."""
         with self._lock:

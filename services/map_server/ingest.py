@@ -14,8 +14,10 @@ otherwise resend it forever without knowing why.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
+import time
 from collections import defaultdict
 from collections.abc import Callable
 
@@ -41,17 +43,30 @@ class Ingest:
         self._queue: queue.Queue = queue.Queue(QUEUE_LIMIT)
         self._thread = threading.Thread(target=self._run, name="gmmap-ingest", daemon=True)
         self._dim: int | None = None  # of the first accepted message: a map is 2D or 3D for good
+        self._deadline = math.inf  # set by stop: the worker ends after the batch that passes it
 
     def start(self) -> None:
         self._thread.start()
 
-    def stop(self, timeout: float = 5.0) -> None:
-        """Finish what is queued, then stop the worker."""
-        self._queue.put(_STOP)
-        self._thread.join(timeout)
+    def stop(self, timeout: float = 1.5) -> None:
+        """Stop the worker after what it can store within `timeout` s; what is still queued then is
+        dropped unacknowledged (its robots hold it and send it again), so a server under load stops
+        in seconds rather than after its whole backlog."""
+        self._deadline = time.monotonic() + timeout
+        try:
+            self._queue.put_nowait(_STOP)
+        except queue.Full:
+            pass  # the worker sees the deadline after its current batch
+        self._thread.join(timeout + 1.0)
+        while True:  # what is left is dropped, and a Zenoh callback blocked on the full queue is let go
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                break
 
     def submit(self, key: str, payload: bytes) -> None:
-        self._queue.put((key, payload))
+        if self._deadline == math.inf:  # once stopping, not acknowledged: the robot sends it again
+            self._queue.put((key, payload))
 
     def replay(self) -> int:
         """Load the store into the FleetMap (before subscribing); returns the scans loaded."""
@@ -74,7 +89,7 @@ class Ingest:
                     batch.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
-            stop = any(item is _STOP for item in batch)
+            stop = any(item is _STOP for item in batch) or time.monotonic() > self._deadline
             try:
                 self._process([item for item in batch if item is not _STOP])
             except Exception:  # the server keeps serving; the agents resend what was not acked
@@ -86,6 +101,8 @@ class Ingest:
         scans: list[tuple[ScanMessage, bytes]] = []
         updates: list[tuple[PoseGraphUpdate, bytes]] = []
         for key, payload in batch:
+            if time.monotonic() > self._deadline:
+                break  # stopping: the rest is not acknowledged, and sent again by its robots
             message = self._validate(key, payload)
             if isinstance(message, ScanMessage):
                 scans.append((message, payload))

@@ -131,7 +131,7 @@ class ZenohSide:
         self.stop_ingest()
         for queryable in self._queryables:
             queryable.undeclare()
-        self._queries.shutdown(wait=True)
+        self._queries.shutdown(wait=False, cancel_futures=True)  # a long map query must not hold up a stop
         self.session.close()
 
 
@@ -168,6 +168,7 @@ def start_http(state: ServerState, options: ServerConfig, variance: float, token
         h11_max_incomplete_event_size=MAX_REQUEST_HEAD,
         ssl_certfile=options.http_tls_cert,
         ssl_keyfile=options.http_tls_key,
+        timeout_graceful_shutdown=1,  # a tile being traced is cut off rather than delay a stop
     )
     server = uvicorn.Server(config)
     # uvicorn leaves signal handling to the main thread when it runs elsewhere.
@@ -237,14 +238,24 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
         stop.wait()
         print("gmmap server: stopping", file=sys.stderr, flush=True)
     finally:
+        stopping = time.perf_counter()
+        fleet_map.close()  # tiles being traced end now, and their requests with them
         if http is not None:
             server, thread = http
             server.should_exit = True
-            thread.join(5)
+            thread.join(1)
+        http_s = time.perf_counter() - stopping
         if zenoh_side is not None:
-            zenoh_side.stop_ingest()  # no new messages; then what is queued is stored and acked
+            zenoh_side.stop_ingest()  # no new messages; then what can be stored in time is stored and acked
         ingest.stop()
+        ingest_s = time.perf_counter() - stopping - http_s
         if zenoh_side is not None:
             zenoh_side.close()
+        print(
+            f"gmmap server: stopped in {time.perf_counter() - stopping:.1f} s "
+            f"(http {http_s:.1f} s, ingest {ingest_s:.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
         store.close()
     return 0

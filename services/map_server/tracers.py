@@ -18,6 +18,11 @@ from gmm_core.reconstruct import trace_groups
 from .nodes import Posed
 from .samples import SampleCache
 
+
+class TracingStopped(RuntimeError):
+    """A trace cut off because its pool was closed."""
+
+
 SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
 SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
 
@@ -30,6 +35,13 @@ class TracerPool:
         self.threads = threads
         self.samples = samples
         self._pool = ThreadPoolExecutor(threads, "gmmap-trace")
+        self._closed = False
+
+    def close(self) -> None:
+        """Stop tracing: queued traces are cancelled, running ones end at their next node, so a
+        server stops in moments however large the tiles it was asked for (their requests fail)."""
+        self._closed = True
+        self._pool.shutdown(wait=False, cancel_futures=True)
 
     def trace(self, grid: Grid, plus: list[Posed], minus: list[Posed]) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 hit and miss counts on `grid` of the nodes in `plus` less those in `minus`.
@@ -53,6 +65,8 @@ class TracerPool:
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
         def groups():
             for sign, posed in entries:
+                if self._closed:
+                    raise TracingStopped("the map server is stopping")
                 rays = self.samples.rays(posed.node, grid.resolution)
                 if len(rays.ends):
                     # Eq. 2: the node-frame origin and ends moved by the node's world pose.
