@@ -402,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
         "agent.timeout",
         type=float,
         metavar="S",
-        help="after publishing, wait at most S s for the acknowledgements (exit 1 otherwise)",
+        help="after publishing, give up (exit 1) once S s pass without an acknowledgement",
     )
     setting(
         p,

@@ -54,6 +54,10 @@ from .sources import (
 
 log = logging.getLogger("gmmap.agent")
 
+# s without any answer while messages are in flight before they count as lost (a server that is
+# slow but answering is never resent to; one that restarted is seen at once by its subscription)
+SILENCE_S = 10.0
+
 
 class Agent:
     def __init__(
@@ -92,6 +96,8 @@ class Agent:
         self._stop = threading.Event()
         self._room = threading.Event()  # set by Acks: the resender refills the window
         self._last_heard = 0.0  # time.time() of the server's last answer
+        self._probe = None  # a publisher on our scan keys, for the server's presence
+        self._server_gone = False
         self._acked_sent = 0.0  # when the latest-sent acknowledged message was sent
         self._connector = threading.Thread(target=self._connect, args=(config,), name="gmmap-connect", daemon=True)
         self._resender = threading.Thread(target=self._resend_loop, name="gmmap-resend", daemon=True)
@@ -155,16 +161,23 @@ class Agent:
         """Wait until a subscriber of our scans is known, at most `timeout` s.
 
         Puts before that are dropped by Zenoh, and so are Acks sent before our Ack subscriber
-        reached the server; either would wait a resend period.
+        reached the server; either would wait a resend period. The probe stays: its matching
+        status tells the resender when the server went away and came back.
         """
-        probe = session.declare_publisher(scan_key(self.options.fleet, self.options.robot, 0))
-        try:
-            deadline = time.monotonic() + timeout
-            while not probe.matching_status.matching and time.monotonic() < deadline:
-                time.sleep(0.01)
-            return probe.matching_status.matching
-        finally:
-            probe.undeclare()
+        self._probe = session.declare_publisher(scan_key(self.options.fleet, self.options.robot, 0))
+        deadline = time.monotonic() + timeout
+        while not self._probe.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        self._last_heard = time.time()  # silence is counted from here
+        return self._probe.matching_status.matching
+
+    def _server_returned(self) -> bool:
+        """True once after the server's subscriber vanished and came back (a restart, a lost link):
+        what was in flight to it may have died in its queue."""
+        matched = self._probe is not None and self._probe.matching_status.matching
+        returned = matched and self._server_gone
+        self._server_gone = not matched
+        return returned
 
     # -- sending -------------------------------------------------------------------------------
     def send(self, kind: str, ident: int, key: str, raw: bytes) -> None:
@@ -202,8 +215,10 @@ class Agent:
                 if not self.reconcile():
                     self._store_changed.set()  # no store answered yet: ask again next round
             now, timeout = time.time(), self.resend_timeout()
+            returned = self._server_returned()
+            silent = returned or now - self._last_heard >= max(timeout, SILENCE_S)
             with self._send_lock:
-                due = self.outbox.due(now, timeout, now - self._last_heard >= timeout, self._acked_sent)
+                due = self.outbox.due(now, 0.0 if returned else timeout, silent, self._acked_sent)
                 if due:
                     log.info("sending %d unacknowledged messages again", len(due))
                     self._publish(due)
@@ -399,10 +414,15 @@ class Agent:
 
     def wait_acknowledged(self, timeout: float) -> int:
         """Block until a store's inventory was compared with the outbox and the outbox is empty, or
-        `timeout` s pass; returns what is still pending (at least 1 while no store answered)."""
+        `timeout` s pass without an acknowledgement (a slow server that is working through a robot's
+        backlog keeps it waiting); returns what is still pending (at least 1 while no store answered)."""
         deadline = time.monotonic() + timeout
+        last = None
         with self._changed:
             while (pending := self._unconfirmed()) and time.monotonic() < deadline:
+                if last is not None and pending < last:
+                    deadline = time.monotonic() + timeout  # progress: the server is alive
+                last = pending
                 self._changed.wait(min(0.5, max(0.0, deadline - time.monotonic())))
         return pending
 
@@ -423,6 +443,9 @@ class Agent:
             self.outbox.close()
 
     def _close_session(self) -> None:
+        if self._probe is not None:
+            self._probe.undeclare()
+            self._probe = None
         if self._ack_subscriber is not None:
             self._ack_subscriber.undeclare()  # callback subscribers outlive their Python reference
             self._ack_subscriber = None

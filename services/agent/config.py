@@ -31,7 +31,7 @@ class AgentConfig:
     odometry_only: bool = False  # with corrections: the matched scans, but no pose-graph updates
     window: int = 128  # messages published and not yet answered, at most; the outbox holds the rest
     resend_s: float = 1.0  # s, least time before resending what is unacknowledged (grows with the Ack RTT)
-    timeout: float = 120.0  # s to wait for the last Acks once everything is published
+    timeout: float = 120.0  # s without an Ack, once everything is published, before giving up
     # MiB of acknowledged messages the outbox keeps, oldest forgotten first, so that a server that
     # lost them (a fresh data directory, a restored backup) gets them again; 0: forget at once.
     keep_acked_mb: float = 256.0
