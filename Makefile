@@ -21,7 +21,7 @@ $(VENV)/.bench: $(VENV)/.core
 test: $(VENV)/.dev
 	@command -v chromium >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || echo "could not install chromium: the viewer screenshot test will be skipped"
 	@command -v docker-compose >/dev/null || [ "$$(id -u)" != 0 ] || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq docker-compose >/dev/null) || echo "could not install docker-compose: the compose file validation test will be skipped"
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n 2 --durations=15
 
 unit: $(VENV)/.dev
 	$(VENV)/bin/pytest -q -m "not integration"
