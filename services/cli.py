@@ -55,20 +55,11 @@ def _read_source(args, config: GmmapConfig, keep_fraction: float = 1.0, seed: in
     from services.datasets.keyframes import keyframes
 
     options |= source_options(args)
-    read = 0
     total = count_scans(args.log, args.format, **options)
-    with tqdm(total=total, desc="read", unit="scan", file=sys.stderr, leave=False) as bar:
-
-        def counted(scans):
-            nonlocal read
-            for scan in scans:
-                read += 1
-                bar.update(1)
-                yield scan
-
-        scans = counted(read_scans(args.log, args.format, keep_fraction=keep_fraction, seed=seed, **options))
-        kept = list(keyframes(scans, config.keyframe, lambda s: (s.pose, s.stamp)))
-    return kept, read
+    scans = read_scans(args.log, args.format, keep_fraction=keep_fraction, seed=seed, **options)
+    with tqdm(scans, total=total, desc="read", unit="scan", file=sys.stderr, leave=False) as bar:
+        kept = list(keyframes(bar, config.keyframe, lambda s: (s.pose, s.stamp)))
+        return kept, bar.n
 
 
 def cmd_replay(args) -> int:

@@ -84,9 +84,8 @@ class Agent:
         self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
         self._sent_poses: dict[int, Pose] = {}  # node -> the corrected pose last sent in an update
         self.store: str | None = None  # the store this agent reports to, from its inventory
-        self.requeued: dict[
-            str, int
-        ] = {}  # {store that had acknowledged them: messages sent again} as the store lacked them
+        # {store that had acknowledged them: messages sent again}, because the store reported to lacked them
+        self.requeued: dict[str, int] = {}
         self.lost: set[int] = set()  # acknowledged nodes the store lacks and whose bytes are gone: refit
         self.refitted = 0  # of those, fitted again from the source
         self._reconciled = threading.Event()  # set once the store's inventory was compared with the outbox
@@ -148,7 +147,6 @@ class Agent:
             self.requeued[store] = self.requeued.get(store, 0) + count
         self.lost |= lost
         self.store = inventory.store
-        self.outbox.set_meta("store", inventory.store)
         self._reconciled.set()
         with self._changed:
             self._changed.notify_all()
@@ -493,10 +491,12 @@ def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
         agent.wait_reconciled(min(o.timeout, 5.0))
         with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:
             updates = agent.publish_all(nodes, bar.update)
-        if agent.wait_reconciled(o.timeout):  # a store that answered late may lack what is no longer kept
+        reconciled = agent.wait_reconciled(o.timeout)
+        if reconciled:  # a store that answered late may lack what is no longer kept
             agent.refit(nodes)
         published = time.perf_counter()
-        pending = agent.wait_acknowledged(o.timeout)
+        # no store answered within the timeout: say so now rather than wait a second one
+        pending = agent.wait_acknowledged(o.timeout if reconciled else 0.0)
         if pending:
             print(
                 f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; "

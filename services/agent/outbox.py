@@ -7,7 +7,7 @@ identity, from the Ack) and, up to `keep_bytes` (the oldest forgotten first), th
 a server that later lacks them (a fresh data directory, a restored backup) gets them again
 (`requeue_missing`). It also tells a restarted agent what to skip. `rejected` keeps what the server
 refused for good (a Rejection: not resent, reported), and `meta` the next pose-graph revision,
-which must keep increasing across restarts, and the last store seen.
+which must keep increasing across restarts.
 """
 
 from __future__ import annotations
@@ -155,10 +155,6 @@ class Outbox:
                 by_store[row[4]] = by_store.get(row[4], 0) + 1
             gone = {row[1] for row in missing if row[0] == "scan" and row[3] is None}
         return by_store, gone
-
-    def set_meta(self, name: str, value: str) -> None:
-        with self._lock, self._db:
-            self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (name, value))
 
     def reject(self, kind: str, ids: tuple[int, ...], reason: str, detail: str) -> int:
         """Drop messages the server refused for good, keeping why; returns how many were still held."""
