@@ -124,10 +124,12 @@ def count_beams(
     beams: Iterable[tuple[np.ndarray, np.ndarray, Pose]],
     max_range: float,
     progress: Callable[[int], None] | None = None,
+    threads: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The counting occupancy grid of raw beams: (hits, no-return directions, sensor pose) per scan.
 
-    Hits are in the sensor frame; a no-return beam adds misses up to `max_range`.
+    Hits are in the sensor frame; a no-return beam adds misses up to `max_range`. `threads`: as
+    trace_rays (1 for a single scan: numba's threads cost more to start than its few rays).
     """
 
     def rays():
@@ -136,4 +138,4 @@ def count_beams(
             is_hit = np.concatenate([np.ones(len(hits), bool), np.zeros(len(no_return), bool)])
             yield pose.t, pose.apply(ends), np.ones(len(ends)), is_hit
 
-    return trace_groups(grid, rays(), progress)
+    return trace_groups(grid, rays(), progress, threads=threads)

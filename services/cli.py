@@ -410,8 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sim", help="a simulated fleet over real Zenoh: bytes, map AUROC vs ground truth, latencies")
     setting(p, "--robots", "sim.robots", type=int, help="robots in the fleet, each a full agent")
     setting(p, "--world", "sim.world", choices=WORLD_NAMES, help="office, warehouse: 2D laser; mine: 3D 16-beam lidar")
-    setting(p, "--duration", "sim.duration", type=float, help="seconds each robot drives and publishes")
-    setting(p, "--rate", "sim.rate", type=float, help="scans per second per robot")
+    setting(p, "--duration", "sim.duration", type=float, help="simulated seconds each robot drives and publishes")
+    setting(p, "--rate", "sim.rate", type=float, help="scans per simulated second per robot")
+    setting(p, "--time-scale", "sim.time_scale", type=float, metavar="X", help="simulated seconds per wall second")
     setting(p, "--seed", "sim.seed", type=int, help="world, paths, odometry and sensor noise")
     setting(
         p,

@@ -16,7 +16,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -49,6 +49,7 @@ from .sources import (
     RelaxingCorrections,
     SimulatedNodes,
     default_update_every,
+    is_simulated,
     load_nodes,
 )
 
@@ -348,18 +349,42 @@ class Agent:
         (0: all stored by the server). What is held stays in the outbox and is resent."""
         return self.wait_acknowledged(timeout)
 
-    def _send_scan(self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float) -> bool:
+    def _send_scan(
+        self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float, raw: bytes | None = None
+    ) -> bool:
         if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
             self.unsent += 1
             return False
-        o = self.options
         if node in self.lost:
             self.lost.discard(node)
             self.refitted += 1
-        model = fit_scan(points, no_return, self.fit.for_dimension(pose.dim))
-        message = ScanMessage(o.fleet, o.robot, node, stamp, model, pose)
-        self.send("scan", node, scan_key(o.fleet, o.robot, node), encode(message, o.encoding))
+        o = self.options
+        raw = raw or self._encoded(node, points, no_return, pose, stamp)
+        self.send("scan", node, scan_key(o.fleet, o.robot, node), raw)
         return True
+
+    def _encoded(self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float) -> bytes:
+        """The node's ScanMessage: the scan fitted (Sec. III-A/B) and encoded."""
+        o = self.options
+        model = fit_scan(points, no_return, self.fit.for_dimension(pose.dim))
+        return encode(ScanMessage(o.fleet, o.robot, node, stamp, model, pose), o.encoding)
+
+    def _send_node(self, node: Node) -> bool:
+        scan = node.scan
+        return self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp, node.message)
+
+    def prepare(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> list[Node]:
+        """Every node fitted and encoded ahead, its beams dropped: a simulated robot that prepares its
+        run, so that a timed (or time-compressed) run measures the server and the link, not the fit."""
+        prepared = []
+        for node in nodes:
+            scan = node.scan
+            raw = self._encoded(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+            beamless = replace(scan, hits=scan.hits[:0], no_return=scan.no_return[:0])
+            prepared.append(replace(node, scan=beamless, message=raw))
+            if progress is not None:
+                progress(1)
+        return prepared
 
     # -- a whole source ------------------------------------------------------------------------
     def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
@@ -367,7 +392,7 @@ class Agent:
         updates sent. `kept` counts the nodes, `resumed` those a previous run got through."""
         o = self.options
         corrected: dict[int, Node] = {}  # the nodes a back end corrects
-        back_end = RelaxingCorrections() if isinstance(nodes, SimulatedNodes) else FixedCorrections()
+        back_end = RelaxingCorrections() if is_simulated(o.source) else FixedCorrections()
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
         # those the store lacks and the outbox no longer keeps are fitted again.
@@ -388,8 +413,7 @@ class Agent:
                     if o.rate > 0:
                         time.sleep(max(0.0, started + sent / o.rate - time.monotonic()))
                     sent += 1
-                    scan = node.scan
-                    delivered = self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+                    delivered = self._send_node(node)
                 if delivered and node.corrected is not None:
                     corrected[node.node] = node
             if corrected and o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
@@ -406,8 +430,7 @@ class Agent:
         held = self.outbox.held("scan")
         again = [n for n in nodes if n.node in self.lost and n.node not in held]
         for node in again:
-            scan = node.scan
-            self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+            self._send_node(node)
         return len(again)
 
     def wait_acknowledged(self, timeout: float) -> int:
@@ -472,14 +495,28 @@ def _requeued(agent: Agent) -> str:
     return f" (the store lacked {lacked} acknowledged messages: {'; '.join(parts)})"
 
 
-def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
-    """Run one agent until its source is published and acknowledged; the process exit code."""
+def run_agent(
+    o: AgentConfig,
+    fit: FitConfig,
+    keyframe: KeyframeConfig,
+    nodes: Sequence[Node] | SimulatedNodes | None = None,
+    ready: Callable[[], None] | None = None,
+) -> int:
+    """Run one agent until its source is published and acknowledged; the process exit code.
+
+    `nodes`: the source's nodes when the caller built them (else read from `o.source`); `ready`:
+    with it, every node is fitted ahead (Agent.prepare) and `ready()` is called, which returns when
+    publishing may start (a simulated fleet starts its timed run once every robot is prepared).
+    """
     o.check_runnable()
     started = time.perf_counter()
     print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit, keyframe=keyframe)}", file=sys.stderr, flush=True)
     if o.update_every is None:
         o = replace(o, update_every=default_update_every(o.source, o.rate))
-    nodes = load_nodes(o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, **o.reader_options())
+    if nodes is None:
+        nodes = load_nodes(
+            o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, **o.reader_options()
+        )
     if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
         nodes = [replace(n, corrected=None) for n in nodes]
     outbox = Outbox(o.outbox_path, o.fleet, o.robot, o.keep_acked_bytes)
@@ -487,6 +524,11 @@ def run_agent(o: AgentConfig, fit: FitConfig, keyframe: KeyframeConfig) -> int:
     try:
         from tqdm import tqdm
 
+        if ready is not None:
+            with tqdm(total=len(nodes), desc=f"{o.robot} prepare", unit="scan", file=sys.stderr, leave=False) as bar:
+                nodes = agent.prepare(nodes, bar.update)
+            ready()
+            started = time.perf_counter()
         # Against the store's inventory first, when it answers soon: what it lacks is sent again.
         agent.wait_reconciled(min(o.timeout, 5.0))
         with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:

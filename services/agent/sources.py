@@ -31,6 +31,9 @@ class Node:
     scan: RangeScan  # beams in the sensor frame, stamp
     estimate: Pose  # published with the scan (odometry where corrections follow)
     corrected: Pose | None  # sent in pose-graph updates; None: no back end for this source
+    message: bytes | None = (
+        None  # the encoded ScanMessage when fitted ahead (Agent.prepare); `scan` then keeps no beams
+    )
 
 
 def parse_source(text: str) -> tuple[str | None, str]:

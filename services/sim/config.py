@@ -15,8 +15,9 @@ from services.sim.world_names import WORLD_NAMES
 class SimConfig:
     robots: int = 3  # robots in the fleet, >= 1
     world: str = "office"  # office, warehouse: 2D laser; mine: 3D lidar (services.sim.worlds)
-    duration: float = 60.0  # s each robot drives and publishes (simulated = wall seconds at `rate`)
+    duration: float = 60.0  # simulated s each robot drives and publishes (wall: duration / time_scale)
     rate: float = 5.0  # scans per second per robot, > 0
+    time_scale: float = 1.0  # simulated seconds per wall second, > 0: robots publish at rate x time_scale
     seed: int = 0  # world, paths, odometry and sensor noise
     http_clients: int = 0  # concurrent HTTP clients fetching map tiles meanwhile
     report: str | None = None  # a folder for report.json, report.md and the plots; None: none
@@ -28,11 +29,22 @@ class SimConfig:
         require_count("sim.robots", self.robots)
         require_number("sim.duration", self.duration, positive=True)
         require_number("sim.rate", self.rate, positive=True)
+        require_number("sim.time_scale", self.time_scale, positive=True)
         require_count("sim.seed", self.seed, minimum=0)
         require_count("sim.http_clients", self.http_clients, minimum=0)
         check_id(self.fleet, "sim.fleet")
         if self.world not in WORLD_NAMES:
             raise ValueError(f"sim.world: must be one of {', '.join(WORLD_NAMES)}, got {self.world!r}")
+
+    @property
+    def wall_duration(self) -> float:
+        """Wall seconds the robots publish for: the simulated duration over the time scale."""
+        return self.duration / self.time_scale
+
+    @property
+    def wall_rate(self) -> float:
+        """Scans per wall second per robot."""
+        return self.rate * self.time_scale
 
     @property
     def scans(self) -> int:

@@ -40,8 +40,9 @@ def wire_figures(record: RunRecord) -> tuple[dict, dict, dict]:
     """Per robot: payload bytes and messages by kind; first-seen time of each scan; ingest lags.
 
     A scan's ingest lag runs from when its sensor took it to its Ack: the robot's scan k is taken
-    k / rate after its first (as the agent schedules them), so time a scan spent held back in an
-    outbox counts, not only its time on the wire and in the server's queue.
+    k / rate wall seconds after its first (as the agent schedules them; the rate times the time
+    scale), so time a scan spent held back in an outbox counts, not only its time on the wire and
+    in the server's queue.
     """
     by_robot: dict[str, dict] = defaultdict(lambda: defaultdict(lambda: [0, 0]))  # kind -> [messages, bytes]
     seen: dict[tuple[str, int], float] = {}
@@ -59,7 +60,7 @@ def wire_figures(record: RunRecord) -> tuple[dict, dict, dict]:
     for (robot, node), t in seen.items():
         if robot not in first or node < first[robot][0]:
             first[robot] = (node, t)
-    rate = record.options.rate
+    rate = record.options.wall_rate
     taken = {(r, n): first[r][1] + (n - first[r][0]) / rate for r, n in seen}
     lags = {key: acked[key] - t for key, t in taken.items() if key in acked}
     return by_robot, seen, lags
@@ -136,7 +137,7 @@ def grade(record: RunRecord) -> Grading:
 
     all_lags = list(lags.values())
     slip = [
-        np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.rate
+        np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.wall_rate
         for n in names
         if np.isfinite(per_scan[n]["t"]).any()
     ]
@@ -150,10 +151,12 @@ def grade(record: RunRecord) -> Grading:
         robots=o.robots,
         duration_s=o.duration,
         rate_hz=o.rate,
+        time_scale=o.time_scale,
         seed=o.seed,
         http_clients=o.http_clients,
         component_size=record.config.fit.component_size,
         wall_s=round(record.wall_s, 2),
+        restart_s=None if record.restart_s is None else round(record.restart_s, 2),
         scans_published=total("scans_published"),
         scans_stored=total("scans_stored"),
         scans_resent=total("scans_resent"),

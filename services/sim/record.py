@@ -48,6 +48,7 @@ class RunRecord:
     agent_exit: dict[str, int] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)
     server_rss: list[tuple[float, int]] = field(default_factory=list)  # (epoch s, resident bytes) while it ran
+    restart_s: float | None = None  # from a restart on the run's data directory to serving every node
 
     @property
     def options(self) -> SimConfig:

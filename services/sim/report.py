@@ -49,10 +49,12 @@ class SimReport:
     robots: int
     duration_s: float
     rate_hz: float
+    time_scale: float  # simulated seconds per wall second
     seed: int
     http_clients: int
     component_size: float | None
     wall_s: float
+    restart_s: float | None  # the server restarted on the run's data directory: seconds until it served every node
     # traffic, all robots
     scans_published: int
     scans_stored: int

@@ -45,7 +45,10 @@ from services.sim.tap import WireTap
 
 TILE = 256  # cells per tile side, as the viewer asks
 SNAPSHOT_CELLS = 500_000  # per request: the server's map lock is free for ingest between requests
-ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
+ACK_TIMEOUT_S = 120.0
+SNAPSHOTS = (
+    12  # graded instants of a run, about  # the agents' --timeout: how long one waits for Acks after its last scan
+)
 
 
 def fetch_occupancy(client: HttpClient, grid: Grid) -> np.ndarray:
@@ -153,6 +156,31 @@ def stored_scans(data_dir: Path, fleet: str) -> dict[tuple[str, int], bytes]:
         db.close()
 
 
+def restart_time(start_server, http: HttpClient, nodes: int, timeout: float = 600.0) -> float | None:
+    """Seconds from starting the server again on its data directory until it serves all `nodes`
+    (None: not within `timeout`)."""
+    started = time.monotonic()
+    start_server()
+    while time.monotonic() - started < timeout:
+        try:
+            if sum(r["nodes"] for r in json.loads(http.get("/v1/robots", timeout=5))) >= nodes:
+                return time.monotonic() - started
+        except OSError:
+            pass  # not listening yet
+        time.sleep(0.1)
+    return None
+
+
+def wait_prepared(procs: Processes, start: Path, groups: list[str]) -> None:
+    """Until every robot process has written start/ready-NAME (Agent.prepare: its whole run fitted)."""
+    print(f"gmmap sim: the robots prepare their run ({len(groups)} processes) ...", file=sys.stderr, flush=True)
+    while not all((start / f"ready-{g}").exists() for g in groups):
+        ended = [g for g in groups if procs.reap(g) is not None]
+        if ended:
+            raise RuntimeError(f"gmmap sim: robots {ended[0]} exited while preparing:\n{procs.log_tail(ended[0])}")
+        time.sleep(0.1)
+
+
 def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
     """Run the fleet once; server, agents, relays and the tap are gone when this returns."""
     from tqdm import tqdm
@@ -173,9 +201,13 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         zport, hport = free_port(), free_port()
         server = dataclasses.replace(config.server, http=f"127.0.0.1:{hport}")
         http = HttpClient.for_server(server, o.http_token, o.http_ca)
-        procs.server(
-            zport, server.http, workdir / "data", o.fleet, "--config", str(settings), *http_security_args(server)
-        )
+
+        def start_server() -> None:
+            procs.server(
+                zport, server.http, workdir / "data", o.fleet, "--config", str(settings), *http_security_args(server)
+            )
+
+        start_server()
         tap = WireTap(o.fleet, zport)
         record = RunRecord(config, fleet, grid, correction_interval(o.rate), time.time())
         # On one host Zenoh would hand messages over 3 kB to the server through shared memory,
@@ -185,6 +217,8 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         for name in names:
             relays[name] = CountingRelay(zport)
         groups = robot_groups(o.robots)
+        start = workdir / "start"  # the robots prepare their run, then wait for start/go
+        start.mkdir()
         for g, members in enumerate(groups):
             procs.robots(
                 f"robots-{g}",
@@ -193,17 +227,26 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
                 o.rate,
                 o.scans,
                 o.fleet,
+                "--time-scale",
+                f"{o.time_scale:g}",
+                "--start",
+                str(start),
+                "--name",
+                f"robots-{g}",
                 "--zenoh-config",
                 str(no_shm),
                 "--config",
                 str(settings),
             )
         group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
+        wait_prepared(procs, start, sorted(set(group_of.values())))
         if o.http_clients:
             clients = TileClients(http, tile_urls(grid), o.http_clients)
 
         snapshots_dir = workdir / "snapshots"
         snapshots_dir.mkdir()
+        (start / "go").touch()
+        record.started = time.time()
 
         def snapshot() -> float:
             """Fetch and keep the whole graded map; the seconds it took."""
@@ -213,8 +256,10 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             record.snapshots.append(Snapshot(t, stored, path))
             return time.time() - t
 
-        every = max(2.0, o.duration / 12)  # and >= 3x the last fetch: grading takes <= 1/4 of the server
-        deadline = time.monotonic() + o.duration + ACK_TIMEOUT_S + 60
+        # A bounded number of graded instants however long the mission, each >= 3x the last fetch apart:
+        # grading takes <= 1/4 of the server.
+        every = max(2.0, o.wall_duration / SNAPSHOTS)
+        deadline = time.monotonic() + o.wall_duration + ACK_TIMEOUT_S + 60
         next_snapshot = time.monotonic() + every
         total = o.robots * o.scans
         with (
@@ -239,9 +284,12 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
                 print(f"gmmap sim: the robots of {g} exited {code}:\n{procs.log_tail(g)}", file=sys.stderr)
         record.agent_exit = {name: procs.running[g].returncode for name, g in group_of.items()}
         snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
-        record.components = {r["robot"]: r["components"] for r in json.loads(http.get("/v1/robots", timeout=30))}
+        robots = json.loads(http.get("/v1/robots", timeout=30))
+        record.components = {r["robot"]: r["components"] for r in robots}
         procs.stop("server")
         record.wall_s = time.time() - record.started
+        record.restart_s = restart_time(start_server, http, sum(r["nodes"] for r in robots))
+        procs.stop("server")
         record.events = list(tap.events)
         record.link_bytes = {name: (relay.up, relay.down) for name, relay in relays.items()}
         record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}

@@ -14,10 +14,12 @@ REPORT_KEYS = [
     "robots",
     "duration_s",
     "rate_hz",
+    "time_scale",
     "seed",
     "http_clients",
     "component_size",
     "wall_s",
+    "restart_s",
     "scans_published",
     "scans_stored",
     "scans_resent",
@@ -101,10 +103,12 @@ def sample_report(config: dict) -> SimReport:
         robots=2,
         duration_s=2.0,
         rate_hz=5.0,
+        time_scale=1.0,
         seed=0,
         http_clients=1,
         component_size=None,
         wall_s=12.3,
+        restart_s=1.5,
         scans_published=20,
         scans_stored=20,
         scans_resent=0,
@@ -179,4 +183,4 @@ def test_markdown_shows_the_figures_and_the_configuration():
 def test_summary_lists_the_headline_figures():
     lines = summary(sample_report({})).splitlines()
     assert lines[0] == "                  robots: 2" and "                   auroc: 0.93" in lines
-    assert len(lines) == 15
+    assert len(lines) == 16 and "               restart_s: 1.5" in lines
