@@ -63,10 +63,11 @@ class FleetMap:
         """Stop tracing (a server that is stopping); queries after this fail."""
         self._tracers.close()
 
-    def add_scan(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
-        """Hold a scan; False if (robot, node) is already held (a resend)."""
+    def add_scan(self, msg: ScanMessage, size_bytes: int = 0, raw: bytes | None = None) -> bool:
+        """Hold a scan; False if (robot, node) is already held (a resend). `raw`: `msg` as received,
+        held instead of its decoded model (a server holds every scan of a shift: nodes.py)."""
         with self._lock:
-            return self._nodes.add(msg, size_bytes)
+            return self._nodes.add(msg, size_bytes, raw)
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
         """Re-pose nodes (Eq. 2 at query time), node by node: a listed node takes the update's pose

@@ -185,7 +185,7 @@ class Ingest:
         for (message, payload), added in zip(scans, new):
             if added:
                 self._add_usage(message.robot, len(payload))
-            state.fleet_map.add_scan(message, len(payload))  # a held correction applies as it lands
+            state.fleet_map.add_scan(message, len(payload), payload)  # a held correction applies as it lands
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
             acks[message.robot].append(message.node)  # duplicates too: the sender must stop resending

@@ -2,11 +2,18 @@
 that places them (Eq. 2, applied at query time), a spatial index of their world boxes, and the
 change log a cached tile reads to learn what moved since it was traced.
 
+Held for a whole shift, so held compactly: a server's node keeps the scan message's wire bytes
+(about 1 KB in 2D) rather than the decoded model (several times that), and decodes it when its
+samples are drawn (samples.SampleCache, itself bounded); a node's world pose is made once per
+pose change and shared by every tile that counts it; the change log keeps each node once, at its
+latest change.
+
 Not thread-safe: the FleetMap calls it under its lock.
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -16,7 +23,7 @@ import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
 from gmm_core.sampling import scan_seed
-from protocol import PoseGraphUpdate, ScanMessage
+from protocol import PoseGraphUpdate, ScanMessage, decode
 
 from .pose_graph import PoseGraph
 
@@ -63,23 +70,25 @@ def world_boxes(
     return moved - reach, moved + reach
 
 
-@dataclass
+@dataclass(slots=True, eq=False)
 class Node:
     """One scan as the map holds it: its model stays in the node frame, only its pose changes."""
 
     key: NodeKey
-    model: ScanModel  # in the node frame, never refitted
-    estimate: Pose  # from the scan message, in the robot's map frame
+    raw: bytes | None  # the ScanMessage as received, holding the model; None: `held_model` holds it
+    held_model: ScanModel | None
+    origin: np.ndarray  # (d,) sensor origin in the node frame (the model's)
+    map_pose: Pose  # in the robot's map frame: the newest correction, else the scan's own estimate
     seed: int  # of its samples: scan_seed(robot, node)
     local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
     local_hi: np.ndarray
-    corrected: Pose | None = None  # from the newest pose-graph revision that listed the node
-    pose_changes: int = 0  # bumped whenever `corrected` changes
+    pose_changes: int = 0  # bumped whenever a correction sets `map_pose`
+    posed: Posed | None = None  # where it stood when last asked (Robot.posed), shared by the tiles counting it
 
     @property
-    def map_pose(self) -> Pose:
-        """In the robot's map frame: the newest correction, else the scan's own estimate."""
-        return self.corrected or self.estimate
+    def model(self) -> ScanModel:
+        """The scan model in the node frame, never refitted: held, or decoded from `raw`."""
+        return self.held_model if self.raw is None else decode(self.raw, expect=ScanMessage).model
 
 
 class Posed(NamedTuple):
@@ -117,7 +126,11 @@ class Robot:
         return self.anchor.compose(node.map_pose) if self.anchor is not None else node.map_pose
 
     def posed(self, node: Node) -> Posed:
-        return Posed(node.key, Stamp(node.pose_changes, self.anchor_changes), node, self.world_pose(node))
+        """The node where it stands now: made once per change of its pose or of the anchor."""
+        stamp = Stamp(node.pose_changes, self.anchor_changes)
+        if node.posed is None or node.posed.stamp != stamp:
+            node.posed = Posed(node.key, stamp, node, self.world_pose(node))
+        return node.posed
 
 
 class NodeIndex:
@@ -161,36 +174,49 @@ class NodeIndex:
 
 
 class ChangeLog:
-    """Keys of the nodes added or moved, in order. A position counts every entry ever appended, so
-    it stays valid when old entries are dropped; `start` is the oldest position still held."""
+    """The nodes added or moved, each once at the position of its latest change, oldest first.
+
+    Compacted as it goes: a node logged again moves to the end, so the log never holds more
+    entries than there are nodes, however often they move. A position counts every change ever
+    logged, so it stays valid when entries are dropped; `start` is the oldest position for which
+    `since` still answers (changes before it may have been dropped)."""
 
     def __init__(self):
-        self._keys: list[NodeKey] = []
+        self._latest: dict[NodeKey, int] = {}  # key -> position of its latest change, in position order
         self.start = 0
+        self.end = 0  # the position the next change will have
 
     def __len__(self) -> int:
-        return len(self._keys)
-
-    @property
-    def end(self) -> int:
-        """The position the next entry will have."""
-        return self.start + len(self._keys)
+        return len(self._latest)
 
     def extend(self, keys: Iterable[NodeKey]) -> None:
-        self._keys.extend(keys)
-        if len(self._keys) > CHANGE_LOG_LIMIT:  # down to half: one O(length) drop per LIMIT / 2 entries
-            self.drop_before(self.end - CHANGE_LOG_LIMIT // 2)
+        latest = self._latest
+        for key in keys:
+            latest.pop(key, None)
+            latest[key] = self.end
+            self.end += 1
+        if len(latest) > CHANGE_LOG_LIMIT:  # down to half: one O(length) drop per LIMIT / 2 entries
+            self.drop_before(next(itertools.islice(latest.values(), len(latest) - CHANGE_LOG_LIMIT // 2, None)))
 
     def since(self, position: int) -> list[NodeKey]:
-        """Each key logged from `position` on, once, in the order of first appearance."""
+        """Each key changed at `position` or later, once, newest change first."""
         if position < self.start:
             raise ValueError(f"change log position {position} was dropped (the log starts at {self.start})")
-        return list(dict.fromkeys(self._keys[position - self.start :]))
+        keys = []
+        for key in reversed(self._latest):
+            if self._latest[key] < position:
+                break
+            keys.append(key)
+        return keys
 
     def drop_before(self, position: int) -> None:
-        if position > self.start:
-            del self._keys[: position - self.start]
-            self.start = position
+        latest = self._latest
+        while latest:
+            key = next(iter(latest))
+            if latest[key] >= position:
+                break
+            del latest[key]
+        self.start = max(self.start, position)
 
 
 class NodeStore:
@@ -206,8 +232,9 @@ class NodeStore:
         self.log = ChangeLog()
         self._index: NodeIndex | None = None  # from the first scan on
 
-    def add(self, msg: ScanMessage, size_bytes: int = 0) -> bool:
-        """Hold a scan; False if (robot, node) is already held (a resend)."""
+    def add(self, msg: ScanMessage, size_bytes: int = 0, raw: bytes | None = None) -> bool:
+        """Hold a scan; False if (robot, node) is already held (a resend). `raw`: `msg` as received,
+        held instead of the decoded model."""
         if self.dim is None:
             self.dim = msg.dim
             self._index = NodeIndex(msg.dim)
@@ -221,12 +248,13 @@ class NodeStore:
         lo, hi = local_reach(msg.model)
         node = Node(
             NodeKey(msg.robot, msg.node),
-            msg.model,
-            msg.pose,
+            None if raw is None else bytes(raw),
+            msg.model if raw is None else None,
+            msg.model.origin,
+            robot.graph.pose(msg.node) or msg.pose,  # a correction that came before its scan, else its estimate
             scan_seed(msg.robot, msg.node),
             lo,
             hi,
-            corrected=robot.graph.pose(msg.node),  # a correction that came before its scan
         )
         robot.nodes[msg.node] = node
         robot.components += msg.model.n_components
@@ -255,7 +283,7 @@ class NodeStore:
             node = robot.nodes.get(node_id)
             if node is not None:  # else its scan is still on the way: `add` takes the correction
                 old_poses.setdefault(node.key, node.map_pose)
-                node.corrected = robot.graph.pose(node_id)
+                node.map_pose = robot.graph.pose(node_id)
                 node.pose_changes += 1
                 moved.append(node)
         moved = list({n.key: n for n in moved}.values())
@@ -327,7 +355,7 @@ class NodeStore:
         r = self.robots.get(robot)
         if r is None or not r.nodes:
             return np.zeros((0, self.dim or 2))
-        return np.array([r.world_pose(n).apply(n.model.origin[None])[0] for _, n in sorted(r.nodes.items())])
+        return np.array([r.world_pose(n).apply(n.origin[None])[0] for _, n in sorted(r.nodes.items())])
 
     def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """World box of every node's reach (of all robots or of `robots`), or None when there is none."""

@@ -71,7 +71,7 @@ class TracerPool:
                 if len(rays.ends):
                     # Eq. 2: the node-frame origin and ends moved by the node's world pose.
                     yield (
-                        posed.pose.apply(posed.node.model.origin[None])[0],
+                        posed.pose.apply(posed.node.origin[None])[0],
                         posed.pose.apply(rays.ends),
                         sign * rays.weights,
                         rays.is_hit,

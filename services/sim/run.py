@@ -202,10 +202,9 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         server = dataclasses.replace(config.server, http=f"127.0.0.1:{hport}")
         http = HttpClient.for_server(server, o.http_token, o.http_ca)
 
-        def start_server() -> None:
-            procs.server(
-                zport, server.http, workdir / "data", o.fleet, "--config", str(settings), *http_security_args(server)
-            )
+        def start_server(name: str = "server") -> None:
+            data, security = workdir / "data", http_security_args(server)
+            procs.server(zport, server.http, data, o.fleet, "--config", str(settings), *security, name=name)
 
         start_server()
         tap = WireTap(o.fleet, zport)
@@ -288,8 +287,8 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         record.components = {r["robot"]: r["components"] for r in robots}
         procs.stop("server")
         record.wall_s = time.time() - record.started
-        record.restart_s = restart_time(start_server, http, sum(r["nodes"] for r in robots))
-        procs.stop("server")
+        record.restart_s = restart_time(lambda: start_server("restarted"), http, sum(r["nodes"] for r in robots))
+        procs.stop("restarted")
         record.events = list(tap.events)
         record.link_bytes = {name: (relay.up, relay.down) for name, relay in relays.items()}
         record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}

@@ -11,6 +11,7 @@ from protocol import PoseGraphUpdate, decode
 from services.agent.agent import Agent
 from services.agent.config import AgentConfig
 from services.agent.outbox import Outbox
+from services.agent.sources import simulated_nodes
 from services.zenoh_config import zenoh_config
 from support.net import free_port
 
@@ -44,3 +45,18 @@ def test_updates_carry_only_the_nodes_that_moved_beyond_the_tolerance(offline_ag
     updates = sent_updates(tmp_path / "o.db")
     assert [[n for n, _ in u.poses] for u in updates] == [[0, 1, 2, 3], [1, 3], []]
     assert updates[2].anchor is not None
+
+
+def test_prepared_nodes_publish_the_bytes_a_live_fit_would(offline_agent, tmp_path):
+    """A simulated robot fits its run ahead (Agent.prepare): the same messages go out, and no beams are kept."""
+    nodes = list(simulated_nodes("sim:office:0:2:0", "0:3", 5.0, 50))
+    prepared = offline_agent.prepare(nodes)
+    assert all(len(n.scan.hits) == len(n.scan.no_return) == 0 for n in prepared)
+    assert [n.scan.stamp for n in prepared] == [n.scan.stamp for n in nodes]
+    for live, ahead in zip(nodes, prepared):
+        offline_agent._send_node(live)
+        offline_agent._send_node(ahead)
+    with sqlite3.connect(tmp_path / "o.db") as db:
+        rows = [raw for (raw,) in db.execute("SELECT raw FROM outbox WHERE kind = 'scan' ORDER BY id")]
+    assert len(rows) == 3  # a node sent twice is held once
+    assert rows == [n.message for n in prepared]

@@ -16,15 +16,26 @@ from support.pose_graphs import FLEET, ReferenceGraph, pose, random_history, upd
 def test_change_log_positions_survive_dropped_entries(monkeypatch):
     monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 8)
     log = ChangeLog()
-    keys = [NodeKey("r", i % 3) for i in range(6)]
-    log.extend(keys)
-    assert (log.start, log.end, log.since(2)) == (0, 6, [NodeKey("r", 2), NodeKey("r", 0), NodeKey("r", 1)])
+    r = [NodeKey("r", i) for i in range(3)]
+    log.extend([r[i % 3] for i in range(6)])  # each node twice: held once, at its latest change
+    assert (log.start, log.end, len(log), log.since(2)) == (0, 6, 3, [r[2], r[1], r[0]])
+    assert log.since(5) == [r[2]]
     log.drop_before(4)
-    assert (log.start, len(log), log.since(4)) == (4, 2, [NodeKey("r", 1), NodeKey("r", 2)])
+    assert (log.start, len(log), log.since(4)) == (4, 2, [r[2], r[1]])
     with pytest.raises(ValueError, match="dropped"):
         log.since(3)
-    log.extend([NodeKey("s", i) for i in range(7)])  # 9 entries > 8: the oldest go, 4 are kept
-    assert (log.start, log.end, log.since(9)) == (9, 13, [NodeKey("s", i) for i in range(3, 7)])
+    s = [NodeKey("s", i) for i in range(7)]
+    log.extend(s)  # 9 entries > 8: the oldest go, 4 are kept
+    assert (log.start, log.end, log.since(9)) == (9, 13, s[:2:-1])
+
+
+def test_change_log_holds_each_node_once_however_often_it_moves():
+    log = ChangeLog()
+    keys = [NodeKey("r", i) for i in range(100)]
+    for _ in range(50):
+        log.extend(keys)
+    assert (len(log), log.end) == (100, 5000)
+    assert set(log.since(4950)) == set(keys[50:]) and len(log.since(4900)) == 100
 
 
 @pytest.fixture(scope="module")
