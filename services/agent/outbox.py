@@ -22,7 +22,7 @@ MAX_DOUBLINGS = 4  # a held message waits at most 16 resend timeouts between two
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS outbox (
     kind TEXT NOT NULL, id INTEGER NOT NULL, key TEXT NOT NULL, raw BLOB NOT NULL,
-    sent REAL NOT NULL, attempts INTEGER NOT NULL, PRIMARY KEY (kind, id)
+    sent REAL NOT NULL, attempts INTEGER NOT NULL, first_sent REAL NOT NULL DEFAULT 0, PRIMARY KEY (kind, id)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS acked (
     kind TEXT NOT NULL, id INTEGER NOT NULL, at REAL NOT NULL, store TEXT NOT NULL DEFAULT '',
@@ -53,6 +53,8 @@ class Outbox:
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.execute("PRAGMA busy_timeout=5000")
         self._db.executescript(SCHEMA)
+        if "first_sent" not in {row[1] for row in self._db.execute("PRAGMA table_info(outbox)")}:
+            self._db.execute("ALTER TABLE outbox ADD COLUMN first_sent REAL NOT NULL DEFAULT 0")
         columns = {row[1] for row in self._db.execute("PRAGMA table_info(acked)")}
         for column in ("store TEXT NOT NULL DEFAULT ''", "key TEXT", "raw BLOB"):  # an outbox of protocol v1
             if column.split()[0] not in columns:
@@ -72,21 +74,27 @@ class Outbox:
     def add(self, kind: str, ident: int, key: str, raw: bytes) -> None:
         """Keep a message (replacing one of the same kind and id); sent time 0: due at once."""
         with self._lock, self._db:
-            self._db.execute("INSERT OR REPLACE INTO outbox VALUES (?, ?, ?, ?, 0, 0)", (kind, ident, key, raw))
+            self._db.execute(
+                "INSERT OR REPLACE INTO outbox (kind, id, key, raw, sent, attempts) VALUES (?, ?, ?, ?, 0, 0)",
+                (kind, ident, key, raw),
+            )
             self._db.execute("DELETE FROM rejected WHERE kind = ? AND id = ?", (kind, ident))  # a new attempt
 
     def mark_sent(self, items: list[tuple[str, int]], again: bool = True) -> None:
-        """The messages were sent now (again=False: heard of now, their resend timer restarts)."""
+        """The messages were sent now (again=False: heard of now, their resend timer restarts);
+        `first_sent` keeps when each was first sent, whatever came after."""
+        now = time.time()
         with self._lock, self._db:
             self._db.executemany(
-                f"UPDATE outbox SET sent = ?, attempts = attempts + {int(again)} WHERE kind = ? AND id = ? "
-                "AND (? OR attempts > 0)",
-                [(time.time(), kind, ident, again) for kind, ident in items],
+                f"UPDATE outbox SET sent = ?, attempts = attempts + {int(again)}, "
+                "first_sent = CASE WHEN attempts = 0 THEN ? ELSE first_sent END "
+                "WHERE kind = ? AND id = ? AND (? OR attempts > 0)",
+                [(now, now, kind, ident, again) for kind, ident in items],
             )
 
     def acknowledge(self, kind: str, ids: tuple[int, ...], store: str) -> tuple[list[float], float]:
         """Move acknowledged messages to `acked` (bytes kept, up to keep_bytes); returns the round-trip
-        times (s) of those sent exactly once, and the latest time one of them was sent (0 if none).
+        times (s) of those sent exactly once, and the latest time one of them was first sent (0 if none).
 
         A message sent more than once says nothing about the round trip: its Ack may answer
         either sending (Karn's rule).
@@ -97,7 +105,8 @@ class Outbox:
             round_trips = []
             for i in ids:
                 row = self._db.execute(
-                    "DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts, key, raw", (kind, i)
+                    "DELETE FROM outbox WHERE kind = ? AND id = ? RETURNING sent, attempts, key, raw, first_sent",
+                    (kind, i),
                 ).fetchone()
                 if row is None:  # a repeated Ack, or one for a message this outbox no longer holds
                     self._db.execute(
@@ -108,7 +117,7 @@ class Outbox:
                     continue
                 if row[1] == 1:
                     round_trips.append(now - row[0])
-                latest = max(latest, row[0])
+                latest = max(latest, row[4])
                 raw = row[3] if self.keep_bytes > 0 else None
                 self._db.execute(
                     "INSERT OR REPLACE INTO acked VALUES (?, ?, ?, ?, ?, ?)", (kind, i, now, store, row[2], raw)
@@ -148,7 +157,10 @@ class Outbox:
             ]
             kept = [row for row in missing if row[3] is not None]
             self._db.executemany("DELETE FROM acked WHERE kind = ? AND id = ?", [row[:2] for row in kept])
-            self._db.executemany("INSERT OR REPLACE INTO outbox VALUES (?, ?, ?, ?, 0, 0)", [row[:4] for row in kept])
+            self._db.executemany(
+                "INSERT OR REPLACE INTO outbox (kind, id, key, raw, sent, attempts) VALUES (?, ?, ?, ?, 0, 0)",
+                [row[:4] for row in kept],
+            )
             self._retained -= sum(len(row[3]) for row in kept)
             by_store: dict[str, int] = {}
             for row in kept:
@@ -192,9 +204,11 @@ class Outbox:
 
     def due(self, now: float, timeout: float, silent: bool, passed: float) -> list[tuple[str, int, str, bytes]]:
         """Sent messages to send again at `now` (epoch s), oldest first: unanswered for `timeout` s
-        after their first sending, doubling after each further one (MAX_DOUBLINGS times), and either
-        the server is `silent` or it acknowledged a message sent after them (sent at `passed`), so
-        they were lost, not merely queued behind others.
+        since they were last sent or announced as queued, doubling after each further sending
+        (MAX_DOUBLINGS times), and either the server is `silent` or it acknowledged a message first
+        sent after their own first sending (at `passed`), so they were lost, not merely queued behind
+        others. First sendings, not the latest: a resent message's Ack says nothing of the messages
+        sent between its two sendings, which may well be queued.
 
         A server that is slow but answering is left to work through its queue: resending would only
         deepen it. The back-off's cap keeps a server that comes back after an outage from waiting
@@ -203,7 +217,7 @@ class Outbox:
         with self._lock:
             return self._db.execute(
                 "SELECT kind, id, key, raw FROM outbox WHERE attempts > 0 AND "
-                "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? AND (? OR sent < ?) ORDER BY sent, kind DESC, id",
+                "sent + ? * (1 << MIN(attempts - 1, ?)) <= ? AND (? OR first_sent < ?) ORDER BY sent, kind DESC, id",
                 (timeout, MAX_DOUBLINGS, now, silent, passed),
             ).fetchall()
 

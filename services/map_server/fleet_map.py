@@ -63,6 +63,10 @@ class FleetMap:
         """Stop tracing (a server that is stopping); queries after this fail."""
         self._tracers.close()
 
+    def ingest_first(self):
+        """A context in which the tracers wait at their next node: ingest runs a batch first."""
+        return self._tracers.ingest_first()
+
     def add_scan(self, msg: ScanMessage, size_bytes: int = 0, raw: bytes | None = None) -> bool:
         """Hold a scan; False if (robot, node) is already held (a resend). `raw`: `msg` as received,
         held instead of its decoded model (a server holds every scan of a shift: nodes.py)."""

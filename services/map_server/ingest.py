@@ -9,6 +9,11 @@ is acknowledged before its commit.
 
 A scan over the quota is answered with a Rejection, not left unanswered: the robot would
 otherwise resend it forever without knowing why.
+
+Ingest comes first: while a batch is processed, the map's tracers wait at their next node
+(FleetMap.ingest_first), so a flood of tile requests slows the tiles, not the store. A scan
+that waits in the queue longer than QUEUED_ACK_S is announced to its robot in an Ack's `queued`
+list every QUEUED_ACK_S: received, not lost, so the robot holds it rather than resends it.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from .state import ServerState
 log = logging.getLogger("gmmap.server")
 
 MAX_BATCH = 512
+QUEUED_ACK_S = 2.0  # s between the Acks that list a robot's scans still waiting in the queue
 QUEUE_LIMIT = 20_000  # a full queue blocks the Zenoh callback: back-pressure instead of loss
 _STOP = object()
 
@@ -44,9 +50,13 @@ class Ingest:
         self._thread = threading.Thread(target=self._run, name="gmmap-ingest", daemon=True)
         self._dim: int | None = None  # of the first accepted message: a map is 2D or 3D for good
         self._deadline = math.inf  # set by stop: the worker ends after the batch that passes it
+        self._waiting: dict[str, dict[int, float]] = defaultdict(dict)  # robot -> {queued scan: when}
+        self._waiting_lock = threading.Lock()
+        self._announcer = threading.Thread(target=self._announce_queued, name="gmmap-queued", daemon=True)
 
     def start(self) -> None:
         self._thread.start()
+        self._announcer.start()
 
     def stop(self, timeout: float = 1.5) -> None:
         """Stop the worker after what it can store within `timeout` s; what is still queued then is
@@ -66,7 +76,34 @@ class Ingest:
 
     def submit(self, key: str, payload: bytes) -> None:
         if self._deadline == math.inf:  # once stopping, not acknowledged: the robot sends it again
+            self._note_waiting(key)
             self._queue.put((key, payload))
+
+    def _note_waiting(self, key: str) -> None:
+        try:
+            _, robot, kind, node = parse_key(key)
+        except ProtocolError:
+            return  # rejected, and counted, when its turn comes
+        if kind == "scan":
+            with self._waiting_lock:
+                self._waiting[robot].setdefault(node, time.monotonic())
+
+    def _done_waiting(self, robot: str, nodes: list[int]) -> None:
+        with self._waiting_lock:
+            waiting = self._waiting.get(robot)
+            for node in nodes if waiting else ():
+                waiting.pop(node, None)
+
+    def _announce_queued(self) -> None:
+        """Every QUEUED_ACK_S, tell each robot which of its scans wait longer than that (Ack.queued)."""
+        while self._deadline == math.inf:
+            time.sleep(QUEUED_ACK_S)
+            due = time.monotonic() - QUEUED_ACK_S
+            with self._waiting_lock:
+                late = {r: sorted(n for n, t in w.items() if t <= due) for r, w in self._waiting.items()}
+            for robot, nodes in late.items():
+                if nodes:
+                    self._send(robot, Ack(self.state.fleet, robot, self.state.store.identity, "scan", (), tuple(nodes)))
 
     def replay(self) -> int:
         """Load the store into the FleetMap (before subscribing); returns the scans loaded."""
@@ -90,10 +127,14 @@ class Ingest:
                 except queue.Empty:
                     break
             stop = any(item is _STOP for item in batch) or time.monotonic() > self._deadline
+            items = [item for item in batch if item is not _STOP]
             try:
-                self._process([item for item in batch if item is not _STOP])
+                with self.state.fleet_map.ingest_first():
+                    self._process(items)
             except Exception:  # the server keeps serving; the agents resend what was not acked
                 log.exception("ingest batch of %d failed", len(batch))
+                for key, _ in items:  # no longer announced as queued: their robots resend them
+                    self._done_waiting_key(key)
             if stop:
                 return
 
@@ -104,7 +145,9 @@ class Ingest:
             if time.monotonic() > self._deadline:
                 break  # stopping: the rest is not acknowledged, and sent again by its robots
             message = self._validate(key, payload)
-            if isinstance(message, ScanMessage):
+            if message is None:
+                self._done_waiting_key(key)
+            elif isinstance(message, ScanMessage):
                 scans.append((message, payload))
             elif message is not None:
                 updates.append((message, payload))
@@ -112,6 +155,14 @@ class Ingest:
             self._ingest_scans(scans)
         for update, payload in updates:
             self._ingest_poses(update, payload)
+
+    def _done_waiting_key(self, key: str) -> None:
+        try:
+            _, robot, kind, node = parse_key(key)
+        except ProtocolError:
+            return
+        if kind == "scan":
+            self._done_waiting(robot, [node])
 
     def _validate(self, key: str, payload: bytes) -> ScanMessage | PoseGraphUpdate | None:
         """The message, or None after counting why it was rejected."""
@@ -160,6 +211,7 @@ class Ingest:
                 kept.append((message, payload))
                 batch[robot] += len(payload)
         for robot, nodes in refused.items():
+            self._done_waiting(robot, nodes)
             detail = (
                 f"robot {robot} holds {self._usage[robot] / 2**20:.4g} MiB of scans on this server, "
                 f"the quota is {self.quota / 2**20:.4g} MiB (gmmap server --robot-quota-mb)"
@@ -190,6 +242,7 @@ class Ingest:
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
             acks[message.robot].append(message.node)  # duplicates too: the sender must stop resending
         for robot, nodes in acks.items():
+            self._done_waiting(robot, nodes)
             self._ack(robot, "scan", nodes)
 
     def _ingest_poses(self, update: PoseGraphUpdate, payload: bytes) -> None:

@@ -8,7 +8,9 @@ HTTP requests they starved, and a lone large query waited minutes.)
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -29,18 +31,34 @@ SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds
 
 class TracerPool:
     """All sampling and tracing runs here: at most `threads` at once, so memory stays bounded and
-    ingest and HTTP keep a share of the cores however many clients ask for tiles."""
+    ingest and HTTP keep a share of the cores however many clients ask for tiles.
+
+    Ingest comes first: while `ingest_first` is held, tracers wait at their next node, so the
+    ingest thread has the interpreter to itself but for traces already inside a kernel (which
+    run outside the GIL). Under overload the tiles slow down and go stale; the store does not."""
 
     def __init__(self, threads: int, samples: SampleCache):
         self.threads = threads
         self.samples = samples
         self._pool = ThreadPoolExecutor(threads, "gmmap-trace")
         self._closed = False
+        self._ingest_idle = threading.Event()
+        self._ingest_idle.set()
+
+    @contextmanager
+    def ingest_first(self):
+        """Hold the tracers at their next node while the block runs (one ingest batch)."""
+        self._ingest_idle.clear()
+        try:
+            yield
+        finally:
+            self._ingest_idle.set()
 
     def close(self) -> None:
         """Stop tracing: queued traces are cancelled, running ones end at their next node, so a
         server stops in moments however large the tiles it was asked for (their requests fail)."""
         self._closed = True
+        self._ingest_idle.set()  # a tracer held for ingest sees `_closed` at once
         self._pool.shutdown(wait=False, cancel_futures=True)
 
     def trace(self, grid: Grid, plus: list[Posed], minus: list[Posed]) -> tuple[np.ndarray, np.ndarray]:
@@ -65,6 +83,7 @@ class TracerPool:
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
         def groups():
             for sign, posed in entries:
+                self._ingest_idle.wait()
                 if self._closed:
                     raise TracingStopped("the map server is stopping")
                 rays = self.samples.rays(posed.node, grid.resolution)

@@ -98,6 +98,41 @@ def test_outbox_resends_only_to_a_silent_server_or_what_a_later_ack_passed_over(
     box.close()
 
 
+def test_an_ack_of_a_resent_message_does_not_pass_over_those_sent_in_between(tmp_path):
+    """First sendings order the messages: scan 1 resent after 2 and 3 were first sent says nothing
+    of 2 and 3 (they may be queued), an Ack of 3 says 2 was passed over."""
+    box = Outbox(tmp_path / "o.db", "default", "r")
+    for node in (1, 2, 3, 4):
+        box.add("scan", node, f"k{node}", b"x")
+    for node in (1, 2, 3, 4, 1):  # scan 1 is resent last
+        box.mark_sent([("scan", node)])
+        time.sleep(0.01)
+    box.mark_sent([("scan", 4)], again=False)  # announced as queued: its timer restarts, not its order
+    _, passed = box.acknowledge("scan", (1,), "A")
+    later = time.time() + 10
+    assert box.due(later, 1.0, False, passed) == []
+    _, passed = box.acknowledge("scan", (3,), "A")
+    assert [i for _, i, _, _ in box.due(later, 1.0, False, passed)] == [2]
+    box.close()
+
+
+def test_an_outbox_written_before_first_sendings_were_kept_opens(tmp_path):
+    path = tmp_path / "old.db"
+    db = sqlite3.connect(path)
+    db.executescript(
+        "CREATE TABLE outbox (kind TEXT NOT NULL, id INTEGER NOT NULL, key TEXT NOT NULL, raw BLOB NOT NULL, "
+        "sent REAL NOT NULL, attempts INTEGER NOT NULL, PRIMARY KEY (kind, id)) WITHOUT ROWID; "
+        "INSERT INTO outbox VALUES ('scan', 7, 'k7', x'00', 1.0, 1);"
+    )
+    db.commit()
+    db.close()
+    box = Outbox(path, "default", "r")
+    assert [i for _, i, _, _ in box.due(time.time(), 1.0, True, 0.0)] == [7]
+    box.add("scan", 8, "k8", b"y")
+    assert [i for _, i, _, _ in box.unsent(5)] == [8]
+    box.close()
+
+
 def test_outbox_keeps_messages_until_acknowledged(tmp_path):
     box = Outbox(tmp_path / "o.db", "default", "r")
     box.add("scan", 1, "k1", b"one")

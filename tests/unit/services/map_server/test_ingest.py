@@ -1,0 +1,84 @@
+"""Ingest under load: scans waiting in the queue are announced to their robots (Ack.queued), and
+the map's tracers wait while a batch is ingested (ingest first)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from gmm_core import Grid, Pose, fit_scan
+from protocol import Ack, ScanMessage, decode, encode, scan_key
+from services.map_server import ingest as ingest_module
+from services.map_server.fleet_map import FleetMap
+from services.map_server.ingest import Ingest
+from services.map_server.state import ServerState
+from services.map_server.store import Store
+
+
+@pytest.fixture(scope="module")
+def model():
+    rng = np.random.default_rng(1)
+    return fit_scan(rng.normal(size=(40, 2)) * 0.2 + [2.0, 0.0], np.zeros((0, 2)))
+
+
+def scan(model, node: int) -> ScanMessage:
+    return ScanMessage("default", "r", node, float(node), model, Pose.from_xytheta(0.0, 0.0, 0.0))
+
+
+class SlowStore(Store):
+    """A store whose commits wait for `release`: a server that has fallen behind."""
+
+    def __init__(self, path):
+        super().__init__(path)
+        self.committing = threading.Event()
+        self.release = threading.Event()
+
+    def put_scans(self, batch):
+        self.committing.set()
+        self.release.wait(10)
+        return super().put_scans(batch)
+
+
+def wait_for(condition, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+def test_scans_waiting_in_the_queue_are_announced_until_stored(tmp_path, model, monkeypatch):
+    monkeypatch.setattr(ingest_module, "QUEUED_ACK_S", 0.2)
+    store = SlowStore(tmp_path)
+    answers: list[Ack] = []
+    ingest = Ingest(ServerState("default", FleetMap("default"), store), lambda _, raw: answers.append(decode(raw)))
+    ingest.start()
+    try:
+        ingest.submit(scan_key("default", "r", 0), encode(scan(model, 0)))
+        assert store.committing.wait(10)  # scan 0 is being stored; 1 and 2 wait behind it
+        for node in (1, 2):
+            ingest.submit(scan_key("default", "r", node), encode(scan(model, node)))
+        wait_for(lambda: any(a.queued == (0, 1, 2) for a in answers))
+        assert all(a.ids == () for a in answers)  # nothing is acknowledged before its commit
+        store.release.set()
+        wait_for(lambda: sorted(n for a in answers for n in a.ids) == [0, 1, 2])
+        after = len(answers)
+        time.sleep(0.5)  # stored: no longer announced
+        assert len(answers) == after
+    finally:
+        store.release.set()
+        ingest.stop()
+
+
+def test_tracers_wait_while_a_batch_is_ingested(model):
+    fleet = FleetMap("default", trace_threads=1)
+    for node in range(4):
+        fleet.add_scan(scan(model, node))
+    grid = Grid.from_bbox([0.0, -2.0], [4.0, 2.0], 0.1)
+    done = threading.Event()
+    with fleet.ingest_first():
+        threading.Thread(target=lambda: (fleet.counts(grid), done.set()), daemon=True).start()
+        assert not done.wait(0.5)
+    assert done.wait(10)
