@@ -14,7 +14,9 @@ from services.sim.byte_models import replay_beams
 from services.sim.fleet import robot_name
 from services.sim.rebuild import offline_maps
 from services.sim.record import RunRecord
-from services.sim.report import AurocPoint, RobotReport, SimReport
+from services.sim.report import AurocPoint, MissionWindow, RobotReport, SimReport
+
+MISSION_WINDOWS = 30  # of report.json's over_mission_time
 
 
 @dataclass
@@ -136,6 +138,7 @@ def grade(record: RunRecord) -> Grading:
         return None if any(v is None for v in values) else sum(values)
 
     all_lags = list(lags.values())
+    tile_latencies = [latency for _, latency in record.tile_latencies]
     slip = [
         np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.wall_rate
         for n in names
@@ -178,16 +181,17 @@ def grade(record: RunRecord) -> Grading:
         ingest_lag_p50_s=percentile(all_lags, 50),
         ingest_lag_p99_s=percentile(all_lags, 99),
         ingest_lag_max_s=max(all_lags, default=None),
-        tile_requests=len(record.tile_latencies),
+        tile_requests=len(tile_latencies),
         tile_errors=sum(record.tile_errors.values()),
         tile_error_kinds=record.tile_errors,
-        tile_latency_p50_s=percentile(record.tile_latencies, 50),
-        tile_latency_p99_s=percentile(record.tile_latencies, 99),
+        tile_latency_p50_s=percentile(tile_latencies, 50),
+        tile_latency_p99_s=percentile(tile_latencies, 99),
         cpu_s={k: round(v, 2) for k, v in record.cpu_s.items()},
         realtime_factor=o.duration * cpu_cores() / busy,
         schedule_slip_s=max(slip, default=None),
         **memory_growth(record.server_rss),
         server_rss_over_time=memory_series(record.server_rss, record.started),
+        over_mission_time=mission_windows(record),
         per_robot=robots,
         auroc_over_time=timeline,
         config=record.config.to_dict(),
@@ -213,6 +217,36 @@ def memory_growth(rss: list[tuple[float, int]]) -> dict:
         "server_rss_max_mb": max(mb),
         "server_rss_growth_mb": mb[-1] - mb[0],
     }
+
+
+def mission_windows(record: RunRecord, windows: int = MISSION_WINDOWS) -> list[MissionWindow]:
+    """The run cut into `windows` of equal wall time: memory, tile latency and payload per window,
+    against simulated (mission) time."""
+    o = record.options
+    end = max([record.started + 1e-9] + [t for t, _ in record.server_rss] + [e.t for e in record.events])
+    width = (end - record.started) / windows
+    which = lambda t: min(windows - 1, max(0, int((t - record.started) // width)))  # noqa: E731
+    rss: list[int | None] = [None] * windows
+    for t, b in record.server_rss:
+        rss[which(t)] = b or rss[which(t)]
+    latencies: list[list[float]] = [[] for _ in range(windows)]
+    for t, latency in record.tile_latencies:
+        latencies[which(t)].append(latency)
+    payload = {kind: [0] * windows for kind in ("scan", "poses")}
+    for e in record.events:
+        if e.kind in payload:
+            payload[e.kind][which(e.t)] += e.size
+    return [
+        MissionWindow(
+            mission_s=round((w + 1) * width * o.time_scale, 1),
+            server_rss_mb=None if rss[w] is None else round(rss[w] / 2**20, 1),
+            tile_requests=len(latencies[w]),
+            tile_latency_p99_s=percentile(latencies[w], 99),
+            scan_payload_bytes=payload["scan"][w],
+            pose_payload_bytes=payload["poses"][w],
+        )
+        for w in range(windows)
+    ]
 
 
 def memory_series(rss: list[tuple[float, int]], started: float) -> list[tuple[float, float]]:

@@ -1,5 +1,5 @@
 """The report's figures (matplotlib, Agg): bytes over time, AUROC over time, final map vs ground truth,
-the server's memory over time.
+and the server's memory, tile latency and pose-graph bytes over the mission.
 
 matplotlib is the optional extra `gmmap[sim]`: it is imported when a figure is drawn, so that
 `gmmap sim` without --report runs without it, and `require_matplotlib` lets --report fail before
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.sim.report import AurocPoint
+from services.sim.report import AurocPoint, MissionWindow
 
 MISSING_MATPLOTLIB = "--report draws its figures with matplotlib, which is not installed: install gmmap[sim]"
 
@@ -120,20 +120,24 @@ def map_vs_truth(path: Path, maps: dict, grid, z: float | None) -> None:
     plt.close(fig)
 
 
-def memory_over_time(path: Path, rss: list[tuple[float, float]]) -> None:
-    """The map server's resident memory (MiB) against seconds since the robots started."""
+def over_mission_time(path: Path, windows: list[MissionWindow]) -> None:
+    """What must flatten over a long mission, against simulated time: the server's memory, the
+    tile latency (p99 per window) and the pose-graph bytes per window beside the scan bytes."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    if rss:
-        t, mib = zip(*rss)
-        ax.plot(t, mib, "-", color="k")
-    ax.set(
-        xlabel="time since the robots started (s)",
-        ylabel="resident memory (MiB)",
-        title="Map server memory",
-        ylim=(0, None),
-    )
-    ax.grid(alpha=0.3)
+    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    t = [w.mission_s for w in windows]
+    rss = [np.nan if w.server_rss_mb is None else w.server_rss_mb for w in windows]
+    p99 = [np.nan if w.tile_latency_p99_s is None else w.tile_latency_p99_s for w in windows]
+    axes[0].plot(t, rss, "-", color="k")
+    axes[0].set(ylabel="resident memory (MiB)", title="Map server over the mission", ylim=(0, None))
+    axes[1].plot(t, p99, "-", color="k")
+    axes[1].set(ylabel="tile latency p99 (s)", ylim=(0, None))
+    axes[2].plot(t, [w.scan_payload_bytes / 1e3 for w in windows], "-", color="k", label="scans")
+    axes[2].plot(t, [w.pose_payload_bytes / 1e3 for w in windows], "--", color="k", label="pose-graph updates")
+    axes[2].set(xlabel="mission time (simulated s)", ylabel="payload per window (kB)", ylim=(0, None))
+    axes[2].legend(loc="upper left", frameon=False)
+    for ax in axes:
+        ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

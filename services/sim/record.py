@@ -40,7 +40,7 @@ class RunRecord:
     events: list[WireEvent] = field(default_factory=list)
     link_bytes: dict[str, tuple[int, int]] = field(default_factory=dict)  # robot -> (up, down)
     snapshots: list[Snapshot] = field(default_factory=list)
-    tile_latencies: list[float] = field(default_factory=list)
+    tile_latencies: list[tuple[float, float]] = field(default_factory=list)  # (epoch s asked, s to answer)
     tile_errors: dict[str, int] = field(default_factory=dict)  # failed requests by kind
     published: dict[str, int] = field(default_factory=dict)  # scans each agent fitted and sent
     stored: dict[tuple[str, int], bytes] = field(default_factory=dict)  # the server's store

@@ -62,7 +62,7 @@ def write_report(grading: Grading, record: RunRecord, out: Path) -> None:
     plots.auroc_over_time(out / "auroc_over_time.png", r.auroc_over_time, corrections)
     z = float(np.median(np.concatenate([p[:, 2] for p in record.fleet.paths]))) if record.grid.dim == 3 else None
     plots.map_vs_truth(out / "map_vs_truth.png", grading.final_maps, record.grid, z)
-    plots.memory_over_time(out / "server_memory.png", r.server_rss_over_time)
+    plots.over_mission_time(out / "over_mission_time.png", r.over_mission_time)
     (out / "report.md").write_text(markdown(r))
 
 
@@ -165,7 +165,7 @@ def markdown(r: SimReport) -> str:
         "",
         "![final map and ground truth](map_vs_truth.png)",
         "",
-        "![server memory](server_memory.png)",
+        "![server memory, tile latency and pose-graph bytes over the mission](over_mission_time.png)",
         "",
         "## How it is measured",
         "",

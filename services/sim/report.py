@@ -40,6 +40,19 @@ class AurocPoint:
 
 
 @dataclass
+class MissionWindow:
+    """One window of `over_mission_time` (a run cut into MISSION_WINDOWS): what must flatten, not
+    climb, over a long mission."""
+
+    mission_s: float  # simulated seconds since the robots started, at the window's end
+    server_rss_mb: float | None  # the server's resident memory at the window's end
+    tile_requests: int  # answered in the window
+    tile_latency_p99_s: float | None
+    scan_payload_bytes: int  # on the wire in the window
+    pose_payload_bytes: int
+
+
+@dataclass
 class SimReport:
     """report.json, one field a key, in its order."""
 
@@ -94,6 +107,7 @@ class SimReport:
     server_rss_max_mb: float | None
     server_rss_growth_mb: float | None
     server_rss_over_time: list[tuple[float, float]]  # (s since the robots started, MiB)
+    over_mission_time: list[MissionWindow]
     per_robot: dict[str, RobotReport]
     auroc_over_time: list[AurocPoint]
     config: dict = field(default_factory=dict)  # the resolved configuration the run was given (GmmapConfig.to_dict())

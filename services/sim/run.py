@@ -77,18 +77,18 @@ def tile_urls(grid: Grid) -> list[str]:
 
 
 def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) -> None:
-    """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set; puts (latencies,
-    errors by kind) on `results`."""
+    """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set; puts ((asked,
+    latency) pairs, errors by kind) on `results`."""
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
         rng = random.Random(seed)
         while not stop.is_set():
-            start = time.perf_counter()
+            asked, start = time.time(), time.perf_counter()
             try:
                 http.get(rng.choice(urls), timeout=60)
                 with lock:
-                    latencies.append(time.perf_counter() - start)
+                    latencies.append((asked, time.perf_counter() - start))
             except OSError as error:
                 kind = f"HTTP {error.code}" if isinstance(error, urllib.error.HTTPError) else repr(error)[:120]
                 with lock:
@@ -112,8 +112,8 @@ class TileClients:
         self._process = spawn.Process(target=fetch_tiles, args=args, daemon=True)
         self._process.start()
 
-    def stop(self) -> tuple[list[float], dict[str, int]]:
-        """(latencies of the answered requests, failed requests by kind of failure)."""
+    def stop(self) -> tuple[list[tuple[float, float]], dict[str, int]]:
+        """((epoch s asked, latency s) of the answered requests, failed requests by kind of failure)."""
         self._stop.set()
         answer = self._results.get(timeout=120)
         self._process.join()

@@ -172,8 +172,11 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
     assert 0 < report["tile_latency_p99_s"] < 5
     assert set(report["per_robot"]) == {"r0", "r1"} and report["realtime_factor"] > 0
     assert 20 < report["server_rss_start_mb"] <= report["server_rss_max_mb"] < 4096  # a Python server's RSS
+    windows = report["over_mission_time"]
+    assert len(windows) == 30 and sum(w["pose_payload_bytes"] for w in windows) == report["pose_payload_bytes"]
+    assert report["time_scale"] == 1 and report["restart_s"] > 0
     markdown = (out / "report.md").read_text()
-    for png in ("bytes_over_time.png", "auroc_over_time.png", "map_vs_truth.png", "server_memory.png"):
+    for png in ("bytes_over_time.png", "auroc_over_time.png", "map_vs_truth.png", "over_mission_time.png"):
         assert f"]({png})" in markdown
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "auroc" in result.stdout

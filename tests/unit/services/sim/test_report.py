@@ -5,7 +5,7 @@ import json
 from dataclasses import fields
 
 from services.sim.render import markdown, summary
-from services.sim.report import AurocPoint, RobotReport, SimReport
+from services.sim.report import AurocPoint, MissionWindow, RobotReport, SimReport
 
 # report.json as scripts outside the repository read it (the keys before `config` predate the typed report)
 REPORT_KEYS = [
@@ -54,6 +54,7 @@ REPORT_KEYS = [
     "server_rss_max_mb",
     "server_rss_growth_mb",
     "server_rss_over_time",
+    "over_mission_time",
     "per_robot",
     "auroc_over_time",
     "config",
@@ -143,6 +144,7 @@ def sample_report(config: dict) -> SimReport:
         server_rss_max_mb=131.0,
         server_rss_growth_mb=10.0,
         server_rss_over_time=[(0.0, 120.0), (1.0, 130.0)],
+        over_mission_time=[MissionWindow(10.0, 130.0, 5, 0.2, 14000, 1000)],
         per_robot={"r0": robot(10), "r1": robot(10)},
         auroc_over_time=[AurocPoint(2.0, 10, 0.9, None, 0.8), AurocPoint(4.0, 20, 0.93, 0.88, 0.81)],
         config=config,
