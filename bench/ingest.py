@@ -3,9 +3,12 @@
 The Intel log is fitted once; its 910 encoded scans are then published as --robots robots (so
 every message is new to the server) from one Zenoh peer as fast as the link takes them. The
 clock runs from the first put to the last Ack; every Ack comes after the SQLite commit, so
-this is the end-to-end rate of durable ingest. Usage:
+this is the end-to-end rate of durable ingest. With --http-clients N, N clients fetch the
+viewer's tiles of the log's map over HTTP meanwhile (as `gmmap sim --http-clients` does): the
+server's capacity under tile load, which issue 16 wants at least twice the 200 scans/s of its
+20-robot run. Usage:
 
-    .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full]
+    .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full] [--http-clients 32]
 """
 
 from __future__ import annotations
@@ -18,15 +21,18 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gmm_core import Pose, fit_scan  # noqa: E402
+from gmm_core import Grid, Pose, fit_scan  # noqa: E402
 from protocol import Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key, scan_key  # noqa: E402
 from services.datasets import read_scans  # noqa: E402
+from services.http_client import HttpClient  # noqa: E402
 from services.sim.processes import free_port  # noqa: E402
+from services.sim.run import TileClients, tile_urls  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
 
 LOG = ROOT.parent / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
@@ -36,6 +42,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robots", type=int, default=6)
     parser.add_argument("--synchronous", choices=["normal", "full"], default="normal")
+    parser.add_argument("--http-clients", type=int, default=0, help="clients fetching tiles meanwhile")
     args = parser.parse_args()
 
     scans = list(read_scans(LOG))
@@ -48,7 +55,11 @@ def main() -> int:
     ]
     total_bytes = sum(len(raw) for _, raw in messages)
 
-    port = free_port()
+    port, http_port = free_port(), free_port()
+    lo = np.min([s.pose.t for s in scans], axis=0) - 10.0
+    hi = np.max([s.pose.t for s in scans], axis=0) + 10.0
+    urls = tile_urls(Grid.from_bbox(lo, hi, 0.1))
+    clients = None
     with tempfile.TemporaryDirectory() as data:
         server = subprocess.Popen(
             [
@@ -59,7 +70,7 @@ def main() -> int:
                 "--zenoh-listen",
                 f"tcp/127.0.0.1:{port}",
                 "--http",
-                "",
+                f"127.0.0.1:{http_port}" if args.http_clients else "",
                 "--data-dir",
                 data,
                 "--synchronous",
@@ -71,7 +82,10 @@ def main() -> int:
         )
         session = None
         try:
-            if "ready" not in server.stderr.readline():
+            for line in server.stderr:  # its configuration first, then "ready"
+                if "ready" in line:
+                    break
+            else:
                 raise SystemExit("server did not start")
             session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
             acked, done, last_ack = set(), threading.Event(), [0.0]
@@ -90,6 +104,9 @@ def main() -> int:
             while not probe.matching_status.matching:
                 time.sleep(0.01)
             time.sleep(0.2)  # our Ack subscribers reach the server
+            if args.http_clients:
+                clients = TileClients(HttpClient(f"http://127.0.0.1:{http_port}"), urls, args.http_clients)
+                time.sleep(2.0)  # every client has a request in flight
             start = time.perf_counter()
             for key, raw in messages:
                 session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -97,6 +114,9 @@ def main() -> int:
             if not done.wait(120):
                 raise SystemExit(f"only {len(acked)} of {len(messages)} acknowledged")
             seconds = last_ack[0] - start
+            if clients is not None:
+                tiles, errors = clients.stop()
+                clients = None
 
             # A correction of every node of one robot: put -> stored, applied and acknowledged.
             latencies = []
@@ -124,6 +144,8 @@ def main() -> int:
                 sub.undeclare()
             probe.undeclare()
         finally:
+            if clients is not None:
+                clients.stop()
             if session is not None:
                 session.close()
             server.terminate()
@@ -134,6 +156,13 @@ def main() -> int:
         f"published in {published - start:.2f} s, all stored and acknowledged in {seconds:.2f} s "
         f"-> {n / seconds:.0f} messages/s, {total_bytes / seconds / 1e6:.1f} MB/s"
     )
+    if args.http_clients:
+        latencies_s = sorted(latency for _, latency in tiles)
+        p99 = latencies_s[int(0.99 * (len(latencies_s) - 1))] if latencies_s else float("nan")
+        print(
+            f"meanwhile {args.http_clients} HTTP clients got {len(tiles)} tiles (p99 {p99:.2f} s), "
+            f"failures by kind: {errors or 'none'}"
+        )
     print(
         f"pose-graph update of all {len(scans)} nodes of one robot ({len(raw)} B), put -> stored, applied, "
         f"acknowledged: median {sorted(latencies)[2] * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms"
