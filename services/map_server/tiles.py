@@ -10,6 +10,11 @@ bytes a fresh reconstruction would have.
 A tile reads the node store's change log from the position it last accounted for; entries every
 cached tile has read are dropped. A tile that the log no longer covers (it was not asked for
 while the log outgrew its limit) is traced afresh on its next query.
+
+Under load a tile is served older rather than traced more (ingest first): every answer carries the
+age of its state, a previous state is served for at most MAX_STALE_S, and a request that would
+trace while the tracers are saturated may be shed (docs/ARCHITECTURE.md, "Ingest first, tiles
+degrade").
 """
 
 from __future__ import annotations
