@@ -36,8 +36,8 @@ def test_an_answer_says_how_long_its_state_has_been_out_of_date(messages):
     first = fleet.occupancy_answer(GRID)
     assert (first.kind, first.age) == ("updated", 0.0)
     assert fleet.occupancy_answer(GRID) == tiles.TileAnswer(first.prob, 0.0, "fresh")
+    changed = time.monotonic()  # at most the time the change is stamped with
     fleet.add_scan(messages[20])
-    changed = time.monotonic()
     (tile,) = fleet._tiles.values()
     with tile.lock:  # as if another request were updating it now
         time.sleep(0.05)
