@@ -29,7 +29,9 @@ from starlette.staticfiles import StaticFiles
 
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
+from services.map_server.tiles import MAX_STALE_S
 from services.map_server.tokens import TokenFile
+from services.map_server.tracers import TracersSaturated
 from services.render import occupancy_png, probability_png
 
 from . import params
@@ -44,6 +46,7 @@ VIEWER = Path(__file__).with_name("static") / "viewer.html"
 SWAGGER_FILES = Path(fastapi_offline.__file__).with_name("static")
 SWAGGER_STATIC = "/static/swagger-ui"
 GRID_HEADERS = ["X-Grid-Origin", "X-Grid-Resolution", "X-Grid-Shape"]
+EXPOSED_HEADERS = GRID_HEADERS + ["X-Map-Age", "Retry-After"]  # to a viewer on another origin (CORS)
 VIEWER_DEFAULT_VARIANCE = "__DEFAULT_VARIANCE__"  # in viewer.html, replaced by DEFAULT_VARIANCE when served
 
 
@@ -89,6 +92,13 @@ class ErrorBody(BaseModel):
 
     detail: str
     field: str | None
+
+
+class BusyBody(ErrorBody):
+    """A request shed under load: why (`reason`), and when to ask again (also the Retry-After header)."""
+
+    reason: str
+    retry_after: int
 
 
 ERRORS = {
@@ -156,7 +166,7 @@ def create_app(
         app.add_middleware(BearerAuth, tokens=tokens, refused=state.metrics.http_refused)
     if cors_origins:
         app.add_middleware(
-            CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"], expose_headers=GRID_HEADERS
+            CORSMiddleware, allow_origins=cors_origins, allow_methods=["GET", "POST"], expose_headers=EXPOSED_HEADERS
         )
     fmap = state.fleet_map
     access = access_dependency(tokens)
@@ -190,9 +200,14 @@ def create_app(
 
     def occupancy_of(grid, robots):
         try:
-            return fmap.occupancy(grid, robots)
+            return fmap.occupancy_answer(grid, robots, may_shed=True)
         except ValueError as e:  # the map's own checks (a dimension that changed meanwhile)
             raise ApiError("bbox", str(e)) from None
+
+    def shed(busy: TracersSaturated) -> JSONResponse:
+        state.metrics.tile_answers.labels("shed").inc()
+        body = {"detail": str(busy), "field": None, "reason": busy.reason, "retry_after": busy.retry_after}
+        return JSONResponse(body, status_code=503, headers={"Retry-After": str(busy.retry_after)})
 
     # -- occupancy ------------------------------------------------------------------------
     @app.get(
@@ -203,8 +218,14 @@ def create_app(
                 "content": {m: {} for m in MEDIA_TYPES.values()},
                 "description": "npy: float32 probabilities (ny, nx) or (nz, ny, nx); png: 8-bit grey "
                 "image seen from above, north up (see `shade`); msgpack: a protocol "
-                "MapReply of the probabilities",
-            }
+                "MapReply of the probabilities. X-Map-Age: seconds the state served has been out of date "
+                f"(0: up to date; at most {MAX_STALE_S:g} when a previous state is served under load)",
+            },
+            503: {
+                "model": BusyBody,
+                "description": "The tracers are saturated and the tile has no state recent enough to serve: "
+                "nothing was queued; ask again after Retry-After seconds",
+            },
         },
     )
     def occupancy(
@@ -255,7 +276,11 @@ def create_app(
         selected = who.select(params.robots(robots))  # the reply's key below: per client's robots
         sigma2 = params.variance(variance)
         picture = (shade, sigma2 if shade is Shade.classes else None) if format is Format.png else None
-        prob = occupancy_of(grid, selected)
+        try:
+            answer = occupancy_of(grid, selected)
+        except TracersSaturated as busy:
+            return shed(busy)
+        prob = answer.prob
         reply = (
             format,
             picture,
@@ -280,7 +305,10 @@ def create_app(
             "X-Grid-Origin": ",".join(repr(float(v)) for v in grid.origin),
             "X-Grid-Resolution": repr(grid.resolution),
             "X-Grid-Shape": ",".join(str(n) for n in grid.array_shape),
+            "X-Map-Age": f"{answer.age:.6f}",
         }
+        state.metrics.tile_answers.labels(answer.kind).inc()
+        state.metrics.tile_age.observe(answer.age)
         return Response(body, media_type=MEDIA_TYPES[format], headers=headers)
 
     def points_reply(pts: np.ndarray, res: float, selected, field: str) -> dict:
@@ -369,6 +397,7 @@ def create_app(
     def metrics(who: Access = Depends(access)) -> Response:
         who.require_fleet("/metrics")  # it counts bytes by robot
         stats = fmap.cache_stats()
+        state.metrics.tracer_queue.set(stats["trace_queued"])
         with sync_lock:  # the map counts; the Prometheus counters follow by the difference
             for key, counter in (
                 ("hits", state.metrics.cache_hits),

@@ -23,7 +23,7 @@ from services.host import cpu_cores
 
 from .nodes import NodeStore
 from .samples import SampleCache
-from .tiles import TileCache
+from .tiles import TileAnswer, TileCache
 from .tracers import TracerPool
 
 
@@ -92,6 +92,12 @@ class FleetMap:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed
         (tiles.TileCache.occupancy)."""
         return self._tiles.occupancy(grid, robots)
+
+    def occupancy_answer(
+        self, grid: Grid, robots: Sequence[str] | None = None, *, may_shed: bool = False
+    ) -> TileAnswer:
+        """occupancy with the age and kind of the state served; tiles.TileCache.answer (which may shed)."""
+        return self._tiles.answer(grid, robots, may_shed=may_shed)
 
     def cache_stats(self) -> dict:
         with self._lock:

@@ -9,6 +9,8 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
+TILE_ANSWER_KINDS = ("fresh", "updated", "stale", "coalesced", "shed")
+
 
 class ServerMetrics:
     content_type = CONTENT_TYPE_LATEST
@@ -45,6 +47,25 @@ class ServerMetrics:
             "gmmap_cache_stale",
             "Requests answered with a tile's previous state while another request updated it",
             registry=r,
+        )
+        self.tile_answers = Counter(
+            "gmmap_tile_answers",
+            "HTTP occupancy answers by kind: fresh (cached, up to date), updated (traced for the request), stale "
+            "(the previous state, while another request updates the tile or the tracers are saturated), coalesced "
+            "(a recent state while every tracer is busy), shed (503: the tracers are saturated)",
+            ["kind"],
+            registry=r,
+        )
+        for kind in TILE_ANSWER_KINDS:
+            self.tile_answers.labels(kind)
+        self.tile_age = Histogram(
+            "gmmap_tile_age_seconds",
+            "X-Map-Age of HTTP occupancy answers: how long the state served had been out of date (0: up to date)",
+            registry=r,
+            buckets=(0, 0.05, 0.1, 0.25, 0.5, 1, 1.5, 2, 5),
+        )
+        self.tracer_queue = Gauge(
+            "gmmap_tracer_queue_depth", "Trace parts waiting for a tracer thread (at the scrape)", registry=r
         )
         self.http_refused = Counter(
             "gmmap_http_refused",

@@ -10,11 +10,17 @@ bytes a fresh reconstruction would have.
 A tile reads the node store's change log from the position it last accounted for; entries every
 cached tile has read are dropped. A tile that the log no longer covers (it was not asked for
 while the log outgrew its limit) is traced afresh on its next query.
+
+Under load a tile is served older rather than traced more (ingest first): every answer carries the
+age of its state, a previous state is served for at most MAX_STALE_S, and a request that would
+trace while the tracers are saturated may be shed (docs/ARCHITECTURE.md, "Ingest first, tiles
+degrade").
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -26,9 +32,23 @@ from gmm_core import Grid
 from gmm_core.occupancy import map_estimate
 
 from .nodes import NodeKey, NodeStore, Posed
-from .tracers import TracerPool
+from .tracers import TracerPool, TracersSaturated
 
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
+MAX_STALE_S = 2.0  # a previous state is served only while out of date for at most this long
+COALESCE_S = 0.5  # under load, a state this young ...
+COALESCE_CHANGES = 16  # ... with at most this many changes since is served instead of updated
+
+
+@dataclass(frozen=True)
+class TileAnswer:
+    """A tile's probabilities as served: `age` is how long ago (s) the state stopped being current,
+    0 when up to date; `kind` is fresh (cached, up to date), updated (traced for this request),
+    stale or coalesced (a previous state; see TileCache._cached)."""
+
+    prob: np.ndarray
+    age: float
+    kind: str
 
 
 @dataclass
@@ -43,11 +63,18 @@ class Tile:
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None  # None until the first trace succeeded
     prob_at: int = -1  # `changes` when `prob` was computed
+    outdated_since: float | None = None  # monotonic time of the first change `prob` lacks; None: up to date
+    dirty_since: float | None = None  # that of the first change since the running (or last) update began
     lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
 
     @property
     def nbytes(self) -> int:
         return self.hits.nbytes + self.misses.nbytes + self.grid.n_cells * 4
+
+
+def _age(tile: Tile) -> float:
+    """Seconds since the tile's state stopped being current; 0 while it is."""
+    return 0.0 if tile.outdated_since is None else time.monotonic() - tile.outdated_since
 
 
 @contextmanager
@@ -75,7 +102,9 @@ class TileCache:
         self._hits = 0
         self._misses = 0
         self._updates = 0
-        self._stale = 0  # answered with the previous tile while it was being updated
+        self._stale = 0  # answered with the previous state while it was being updated or the tracers saturated
+        self._coalesced = 0  # answered with a recent state while every tracer was busy
+        self._shed = 0  # refused: the tracers were saturated
 
     def values(self) -> list[Tile]:
         """The cached tiles, least recently used first."""
@@ -96,22 +125,33 @@ class TileCache:
         reached = np.any(
             np.all(lo[:, None] <= tiles_hi[None], axis=2) & np.all(hi[:, None] >= tiles_lo[None], axis=2), axis=0
         )
+        now = time.monotonic()
         for i in np.flatnonzero(reached):
-            tiles[i].changes += 1
+            tile = tiles[i]
+            tile.changes += 1
+            if tile.outdated_since is None:
+                tile.outdated_since = now
+            if tile.dirty_since is None:
+                tile.dirty_since = now
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
+        """p(occupied) on `grid`, Eq. 11 (the array of `answer`)."""
+        return self.answer(grid, robots).prob
+
+    def answer(self, grid: Grid, robots: Sequence[str] | None = None, *, may_shed: bool = False) -> TileAnswer:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed.
 
-        While one request updates a tile, concurrent requests for it are answered with the tile as
-        it was before that update (when there is one) rather than queue behind it: a viewer polling
-        a busy map gets its tiles at once, one update late at most. A lone query always sees every
-        change applied before it.
+        A request that would trace and finds the tracers saturated raises TracersSaturated when
+        `may_shed` (before any work: no tile is made), else queues. See `_cached` for when a
+        previous state is served instead of an update; a lone query, with no other request nor
+        trace running, always sees every change applied before it.
         """
         key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
         with self._lock:
             self._nodes.check_dim(grid)
             tile = self._tiles.get(key)
             if tile is None:
+                self._admit(may_shed)
                 # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
                 tile = Tile(grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape), self._nodes.log.end)
                 self._tiles[key] = tile
@@ -119,39 +159,88 @@ class TileCache:
                 self._boxes = None
                 self._evict()
             self._tiles.move_to_end(key)
-        if not tile.lock.acquire(blocking=False):
+        while True:
             with self._lock:
-                previous = tile.prob
-                if previous is not None:
-                    self._stale += 1
-                    return previous
-            tile.lock.acquire()
+                cached = self._cached(tile)
+                if cached is not None:
+                    return cached
+                if tile.lock.acquire(blocking=False):  # never waits under the map's lock
+                    try:
+                        self._admit(may_shed)
+                    except TracersSaturated:
+                        tile.lock.release()
+                        raise
+                    changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
+                    afresh = first or tile.seen < self._nodes.log.start
+                    if afresh:
+                        reaching = self._nodes.reaching(grid, robots)
+                    else:
+                        changed = self._nodes.changed_since(tile.seen, grid, robots)
+                    tile.dirty_since = None  # from here on, changes are left for the next update
+                    break
+            with tile.lock:  # another request updates it, and its previous state is too old or absent
+                pass
         with _held(tile.lock):
-            with self._lock:
-                if tile.prob_at == tile.changes:
-                    self._hits += 1
-                    return tile.prob
-                changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
-                afresh = first or tile.seen < self._nodes.log.start
+            try:
                 if afresh:
-                    reaching = self._nodes.reaching(grid, robots)
+                    self._trace_afresh(tile, reaching)
                 else:
-                    changed = self._nodes.changed_since(tile.seen, grid, robots)
-            if afresh:
-                self._trace_afresh(tile, reaching)
-            else:
-                self._trace_changes(tile, changed)
+                    self._trace_changes(tile, changed)
+            except BaseException:
+                with self._lock:
+                    tile.dirty_since = tile.outdated_since  # nothing was applied
+                raise
             prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
             with self._lock:
-                # A change after the snapshot bumped `changes`: the next query updates again.
+                # A change after the snapshot bumped `changes` (and set `dirty_since`): the next
+                # query updates again, and this state has been out of date since that change.
                 tile.prob, tile.prob_at, tile.seen = prob, changes, seen
+                tile.outdated_since = tile.dirty_since
                 if first:
                     self._misses += 1
                 else:
                     self._updates += 1
                 self._nodes.log.drop_before(min((t.seen for t in self._tiles.values()), default=seen))
-            return prob
+                return TileAnswer(prob, _age(tile), "updated")
+
+    def _cached(self, tile: Tile) -> TileAnswer | None:
+        """The answer from the cache, or None when this request must update the tile (or wait for
+        the request that does). Under the map's lock.
+
+        Up to date: fresh. Otherwise the previous state, while it has been out of date for at most
+        MAX_STALE_S: stale while another request updates the tile or the tracers are saturated
+        (rather than shed); coalesced while every tracer is busy and the state is at most
+        COALESCE_S old with at most COALESCE_CHANGES changes since, so that a busy tile is updated
+        once for many changes instead of once per change.
+        """
+        if tile.prob is None:
+            return None
+        if tile.prob_at == tile.changes:
+            self._hits += 1
+            return TileAnswer(tile.prob, 0.0, "fresh")
+        age = _age(tile)
+        if age > MAX_STALE_S:
+            return None
+        if tile.lock.locked():
+            self._stale += 1
+            return TileAnswer(tile.prob, age, "stale")
+        load = self._tracers.load()
+        if load.saturated:
+            self._stale += 1
+            return TileAnswer(tile.prob, age, "stale")
+        if load.busy and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
+            self._coalesced += 1
+            return TileAnswer(tile.prob, age, "coalesced")
+        return None
+
+    def _admit(self, may_shed: bool) -> None:
+        """Raise TracersSaturated (counted) when `may_shed` and the tracers are saturated."""
+        if may_shed:
+            load = self._tracers.load()
+            if load.saturated:
+                self._shed += 1
+                raise TracersSaturated(load)
 
     def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed]) -> None:
         """Counts of every node in `reaching`, replacing what the tile held."""
@@ -192,12 +281,16 @@ class TileCache:
             self._boxes = None
 
     def stats(self) -> dict:
+        load = self._tracers.load()
         with self._lock:
             return {
                 "hits": self._hits,
                 "misses": self._misses,
                 "updates": self._updates,
                 "stale": self._stale,
+                "coalesced": self._coalesced,
+                "shed": self._shed,
+                "trace_queued": load.queued,
                 "tiles": len(self._tiles),
                 "tile_bytes": self._bytes,
             }

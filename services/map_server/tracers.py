@@ -8,9 +8,12 @@ HTTP requests they starved, and a lone large query waited minutes.)
 
 from __future__ import annotations
 
+import math
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,6 +30,46 @@ class TracingStopped(RuntimeError):
 
 SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
 SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
+# Saturated: a new trace would wait behind this many queued parts per tracer thread, or about this
+# long (queued parts x the recent mean part time / threads). The count also bounds a queue whose
+# parts have no measured time yet.
+SATURATED_QUEUE_PER_THREAD = 8
+SATURATED_WAIT_S = 1.0
+PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
+
+
+@dataclass(frozen=True)
+class TracerLoad:
+    """The pool at one moment: parts waiting for a thread, parts being traced, the estimated wait."""
+
+    threads: int
+    queued: int
+    running: int
+    wait_s: float
+
+    @property
+    def busy(self) -> bool:
+        """Every tracer thread has work: a new trace would share them or wait."""
+        return self.queued + self.running >= self.threads
+
+    @property
+    def saturated(self) -> bool:
+        return self.queued >= SATURATED_QUEUE_PER_THREAD * self.threads or self.wait_s >= SATURATED_WAIT_S
+
+
+class TracersSaturated(RuntimeError):
+    """A request refused without queueing work: the tracers' queue is over its bound.
+    `retry_after` is the estimated wait in whole seconds, at least 1."""
+
+    reason = "tracers_saturated"
+
+    def __init__(self, load: TracerLoad):
+        self.load = load
+        self.retry_after = max(1, math.ceil(load.wait_s))
+        super().__init__(
+            f"tracers saturated: {load.queued} traces queued for {load.threads} tracer threads "
+            f"(about {load.wait_s:.1f} s of work); retry after {self.retry_after} s"
+        )
 
 
 class TracerPool:
@@ -44,6 +87,10 @@ class TracerPool:
         self._closed = False
         self._ingest_idle = threading.Event()
         self._ingest_idle.set()
+        self._count_lock = threading.Lock()
+        self._queued = 0
+        self._running = 0
+        self._part_seconds: float | None = None  # running mean, from the first part that finished
 
     @contextmanager
     def ingest_first(self):
@@ -53,6 +100,11 @@ class TracerPool:
             yield
         finally:
             self._ingest_idle.set()
+
+    def load(self) -> TracerLoad:
+        with self._count_lock:
+            queued, running = self._queued, self._running
+            return TracerLoad(self.threads, queued, running, queued * (self._part_seconds or 0.0) / self.threads)
 
     def close(self) -> None:
         """Stop tracing: queued traces are cancelled, running ones end at their next node, so a
@@ -72,13 +124,30 @@ class TracerPool:
         parts = min(self.threads, max(1, len(entries) // SPLIT_MIN_NODES))
         if grid.n_cells > SPLIT_MAX_CELLS:
             parts = 1
-        shares = [self._pool.submit(self._trace_part, grid, entries[i::parts]) for i in range(parts)]
+        with self._count_lock:
+            self._queued += parts
+        shares = [self._pool.submit(self._counted_part, grid, entries[i::parts]) for i in range(parts)]
         hits, misses = shares[0].result()
         for share in shares[1:]:
             h, m = share.result()
             hits += h
             misses += m
         return hits, misses
+
+    def _counted_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
+        """_trace_part, counted in the pool's load (queued until it starts, then running)."""
+        with self._count_lock:
+            self._queued -= 1
+            self._running += 1
+        start = time.perf_counter()
+        try:
+            return self._trace_part(grid, entries)
+        finally:
+            seconds = time.perf_counter() - start
+            with self._count_lock:
+                self._running -= 1
+                mean = self._part_seconds
+                self._part_seconds = seconds if mean is None else mean + PART_SECONDS_WEIGHT * (seconds - mean)
 
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
         def groups():

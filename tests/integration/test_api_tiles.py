@@ -1,0 +1,91 @@
+"""Tiles over HTTP under load: X-Map-Age on every occupancy answer, 503 + Retry-After when the
+tracers are saturated, and what /metrics says of both. Real uvicorn on 127.0.0.1, Intel scans."""
+
+from __future__ import annotations
+
+import json
+import urllib.request
+
+import pytest
+
+from gmm_core import Grid, fit_scan
+from protocol import ScanMessage
+from services.api import create_app
+from services.map_server.fleet_map import FleetMap
+from services.map_server.metrics import ServerMetrics
+from services.map_server.state import ServerState
+from services.map_server.tiles import MAX_STALE_S
+from support.net import get
+from support.saturation import saturated_tracers
+from support.uvicorn_thread import Server
+
+ORIGIN = "http://viewer.example"
+
+
+@pytest.fixture(scope="module")
+def messages(intel_scans):
+    return [
+        ScanMessage("test", "r1", s.index, s.stamp, fit_scan(s.hits, s.no_return), s.pose) for s in intel_scans[:21]
+    ]
+
+
+@pytest.fixture
+def server(messages):
+    fleet = FleetMap("test", trace_threads=1)
+    for msg in messages[:20]:
+        fleet.add_scan(msg)
+    state = ServerState(fleet="test", fleet_map=fleet, store=None, metrics=ServerMetrics())
+    with Server(create_app(state, cors_origins=[ORIGIN])) as running:
+        running.fleet_map = fleet
+        yield running
+
+
+def metric(server, line_start: str) -> float:
+    text = get(f"{server.url}/metrics")[2].decode()
+    return float(next(line.split()[-1] for line in text.splitlines() if line.startswith(line_start)))
+
+
+def test_every_occupancy_answer_says_how_old_its_state_is(server, messages):
+    url = f"{server.url}/v1/occupancy?bbox=-8,-12,8,4&resolution=0.1&format=png"
+    for _ in range(2):  # traced, then from the cache
+        status, headers, _ = get(url)
+        assert status == 200 and headers["X-Map-Age"] == "0.000000"
+    server.fleet_map.add_scan(messages[20])
+    (tile,) = server.fleet_map._tiles.values()
+    with tile.lock:  # as if another request were updating it now: its previous state is served
+        status, headers, _ = get(url)
+    assert status == 200 and 0 < float(headers["X-Map-Age"]) <= MAX_STALE_S
+    assert get(url)[1]["X-Map-Age"] == "0.000000"  # brought up to date
+    for kind, count in (("fresh", 1), ("updated", 2), ("stale", 1), ("coalesced", 0), ("shed", 0)):
+        assert metric(server, f'gmmap_tile_answers_total{{kind="{kind}"}}') == count, kind
+    assert metric(server, "gmmap_tile_age_seconds_count") == 4
+    assert metric(server, 'gmmap_tile_age_seconds_bucket{le="0.0"}') == 3
+
+
+def test_saturated_tracers_shed_with_503_and_retry_after_then_serve_again(server, monkeypatch):
+    cold_grids = [Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], r) for r in (0.2, 0.25, 0.3)]
+    url = f"{server.url}/v1/occupancy?bbox=-6,-10,2,-2&resolution=0.15"
+    with saturated_tracers(monkeypatch, server.fleet_map, cold_grids):
+        status, headers, body = get(url)
+        assert status == 503 and headers["Content-Type"] == "application/json"
+        assert int(headers["Retry-After"]) >= 1
+        reply = json.loads(body)
+        assert reply["reason"] == "tracers_saturated" and reply["field"] is None
+        assert reply["detail"].startswith("tracers saturated: 2 traces queued for 1 tracer thread")
+        assert reply["retry_after"] == int(headers["Retry-After"])
+        assert "X-Map-Age" not in headers
+        assert metric(server, "gmmap_tracer_queue_depth") == 2
+    status, headers, _ = get(url)
+    assert status == 200 and headers["X-Map-Age"] == "0.000000"
+    assert metric(server, 'gmmap_tile_answers_total{kind="shed"}') == 1
+    assert metric(server, 'gmmap_tile_answers_total{kind="updated"}') == 1
+    assert metric(server, "gmmap_tracer_queue_depth") == 0
+    assert metric(server, "gmmap_cache_misses_total") == 4  # the three queued tiles, and this one
+
+
+def test_the_age_and_retry_headers_are_exposed_to_a_viewer_on_another_origin(server):
+    url = f"{server.url}/v1/occupancy?bbox=0,0,1,1&resolution=0.5"
+    with urllib.request.urlopen(urllib.request.Request(url, headers={"Origin": ORIGIN}), timeout=60) as reply:
+        assert reply.status == 200
+        exposed = {h.strip() for h in reply.headers["Access-Control-Expose-Headers"].split(",")}
+    assert {"X-Map-Age", "Retry-After", "X-Grid-Shape"} <= exposed

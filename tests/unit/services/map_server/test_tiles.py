@@ -1,0 +1,155 @@
+"""Tiles under load: the age of the state served, stale answers bounded in age, updates coalesced,
+and requests shed when the tracers are saturated."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from gmm_core import Grid, fit_scan
+from protocol import ScanMessage
+from services.map_server import tiles
+from services.map_server.fleet_map import FleetMap
+from services.map_server.tiles import MAX_STALE_S, TileCache
+from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
+from support.saturation import saturated_tracers
+
+GRID = Grid.from_bbox([-8.0, -12.0], [8.0, 4.0], 0.1)
+COLD = [Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], r) for r in (0.2, 0.25, 0.3)]  # tiles not yet cached
+
+
+@pytest.fixture(scope="module")
+def messages(intel_scans):
+    return [ScanMessage("f", "r1", s.index, s.stamp, fit_scan(s.hits, s.no_return), s.pose) for s in intel_scans[:40]]
+
+
+def fleet_of(messages, **kwargs) -> FleetMap:
+    fleet = FleetMap("f", **kwargs)
+    for msg in messages:
+        assert fleet.add_scan(msg)
+    return fleet
+
+
+def test_an_answer_says_how_long_its_state_has_been_out_of_date(messages):
+    fleet = fleet_of(messages[:20])
+    first = fleet.occupancy_answer(GRID)
+    assert (first.kind, first.age) == ("updated", 0.0)
+    assert fleet.occupancy_answer(GRID) == tiles.TileAnswer(first.prob, 0.0, "fresh")
+    changed = time.monotonic()  # at most the time the change is stamped with
+    fleet.add_scan(messages[20])
+    (tile,) = fleet._tiles.values()
+    with tile.lock:  # as if another request were updating it now
+        time.sleep(0.05)
+        stale = fleet.occupancy_answer(GRID)
+        assert stale.kind == "stale" and stale.prob is first.prob
+        assert 0.05 <= stale.age <= time.monotonic() - changed < MAX_STALE_S
+    after = fleet.occupancy_answer(GRID)
+    assert (after.kind, after.age) == ("updated", 0.0)
+    assert np.array_equal(after.prob, fleet_of(messages[:21]).occupancy(GRID))
+
+
+def test_a_previous_state_older_than_max_stale_is_not_served(messages, monkeypatch):
+    """The request waits for the update under way instead, then updates the tile itself."""
+    monkeypatch.setattr(tiles, "MAX_STALE_S", 0.05)
+    fleet = fleet_of(messages[:20])
+    fleet.occupancy(GRID)
+    fleet.add_scan(messages[20])
+    (tile,) = fleet._tiles.values()
+    tile.lock.acquire()  # another request updating it, for 0.3 s
+    threading.Timer(0.3, tile.lock.release).start()
+    time.sleep(0.1)
+    start = time.monotonic()
+    answer = fleet.occupancy_answer(GRID)
+    assert time.monotonic() - start >= 0.15 and (answer.kind, answer.age) == ("updated", 0.0)
+    assert np.array_equal(answer.prob, fleet_of(messages[:21]).occupancy(GRID))
+    assert fleet.cache_stats()["stale"] == 0
+
+
+def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(messages, monkeypatch):
+    fleet = fleet_of(messages[:20])
+    fleet.occupancy(GRID)
+    fleet.add_scan(messages[20])
+    updates, trace_changes = [], TileCache._trace_changes
+
+    def traced_changes(cache, tile, changed):
+        updates.append(sorted(key[1] for key in changed))
+        if len(updates) == 1:  # three scans arrive while the first update traces
+            for msg in messages[21:24]:
+                fleet.add_scan(msg)
+            time.sleep(0.02)
+        trace_changes(cache, tile, changed)
+
+    monkeypatch.setattr(TileCache, "_trace_changes", traced_changes)
+    during = fleet.occupancy_answer(GRID)
+    assert during.kind == "updated" and 0.02 <= during.age < MAX_STALE_S  # it lacks the three scans
+    assert np.array_equal(during.prob, fleet_of(messages[:21]).occupancy(GRID))
+    after = fleet.occupancy_answer(GRID)
+    assert (after.kind, after.age) == ("updated", 0.0)
+    assert updates == [[messages[20].node], [m.node for m in messages[21:24]]]  # one update for all three
+    assert np.array_equal(after.prob, fleet_of(messages[:24]).occupancy(GRID))
+
+
+def test_busy_tracers_coalesce_a_recent_state_until_it_is_old_or_much_changed(messages, monkeypatch):
+    """With every tracer busy, a state at most COALESCE_S old with at most COALESCE_CHANGES changes
+    since is served as is; otherwise (and always with idle tracers, other tests) it is updated."""
+    monkeypatch.setattr(tiles, "COALESCE_CHANGES", 2)
+    monkeypatch.setattr(tiles, "COALESCE_S", 0.2)
+    fleet = fleet_of(messages[:20])
+    before = fleet.occupancy(GRID)
+    monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
+    fleet.add_scan(messages[20])
+    fleet.add_scan(messages[21])
+    coalesced = fleet.occupancy_answer(GRID)
+    assert coalesced.kind == "coalesced" and coalesced.prob is before and 0 < coalesced.age <= 0.2
+    fleet.add_scan(messages[22])  # a third change
+    assert fleet.occupancy_answer(GRID).kind == "updated"
+    fleet.add_scan(messages[23])
+    time.sleep(0.25)  # older than COALESCE_S
+    assert fleet.occupancy_answer(GRID).kind == "updated"
+    assert np.array_equal(fleet.occupancy(GRID), fleet_of(messages[:24]).occupancy(GRID))
+    assert fleet.cache_stats()["coalesced"] == 1
+
+
+def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover(messages, monkeypatch):
+    fleet = fleet_of(messages[:20], trace_threads=1)
+    warm, changed = GRID, Grid.from_bbox([-4.0, -8.0], [4.0, 0.0], 0.1)
+    fleet.occupancy(warm)
+    before = fleet.occupancy(changed)
+    fleet.add_scan(messages[20])  # reaches both: `changed` is not asked again before the load
+    fleet.occupancy(warm)
+    cold = Grid.from_bbox([-6.0, -10.0], [2.0, -2.0], 0.15)
+    with saturated_tracers(monkeypatch, fleet, COLD):
+        tiles_before = fleet.cache_stats()["tiles"]
+        with pytest.raises(TracersSaturated, match="tracers saturated: 2 traces queued for 1 tracer") as shed:
+            fleet.occupancy_answer(cold, may_shed=True)
+        assert shed.value.retry_after >= 1 and shed.value.reason == "tracers_saturated"
+        assert fleet.cache_stats()["tiles"] == tiles_before  # shed before any work: no tile made
+        assert fleet.occupancy_answer(warm, may_shed=True).kind == "fresh"
+        stale = fleet.occupancy_answer(changed, may_shed=True)  # served rather than shed
+        assert stale.kind == "stale" and stale.prob is before and 0 < stale.age <= MAX_STALE_S
+        monkeypatch.setattr(tiles, "MAX_STALE_S", 0.0)  # now too old to serve: shed as well
+        with pytest.raises(TracersSaturated):
+            fleet.occupancy_answer(changed, may_shed=True)
+        monkeypatch.setattr(tiles, "MAX_STALE_S", MAX_STALE_S)
+        stats = fleet.cache_stats()
+        assert (stats["shed"], stats["stale"], stats["trace_queued"]) == (2, 1, 2)
+    answer = fleet.occupancy_answer(cold, may_shed=True)
+    assert (answer.kind, answer.age) == ("updated", 0.0)
+    assert np.array_equal(answer.prob, fleet_of(messages[:21]).occupancy(cold))
+    assert fleet.cache_stats()["trace_queued"] == 0
+
+
+@pytest.mark.parametrize(
+    "load, saturated, retry_after",
+    [
+        (TracerLoad(2, 15, 2, 0.9), False, 1),
+        (TracerLoad(2, 16, 2, 0.0), True, 1),  # the queue bound, with no part timed yet
+        (TracerLoad(2, 3, 2, 1.0), True, 1),  # the wait bound
+        (TracerLoad(2, 3, 2, 2.3), True, 3),
+    ],
+)
+def test_saturation_and_retry_after_follow_the_queue_and_its_estimated_wait(load, saturated, retry_after):
+    assert load.saturated is saturated and load.busy
+    assert TracersSaturated(load).retry_after == retry_after
+    assert not TracerLoad(2, 0, 1, 0.0).busy
