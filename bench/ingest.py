@@ -157,7 +157,7 @@ def main() -> int:
         f"-> {n / seconds:.0f} messages/s, {total_bytes / seconds / 1e6:.1f} MB/s"
     )
     if args.http_clients:
-        latencies_s = sorted(latency for _, latency in tiles)
+        latencies_s = sorted(latency for _, latency, _ in tiles)
         p99 = latencies_s[int(0.99 * (len(latencies_s) - 1))] if latencies_s else float("nan")
         print(
             f"meanwhile {args.http_clients} HTTP clients got {len(tiles)} tiles (p99 {p99:.2f} s), "

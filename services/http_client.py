@@ -7,6 +7,7 @@ import functools
 import ssl
 import urllib.request
 from dataclasses import dataclass
+from email.message import Message
 from pathlib import Path
 
 from services.map_server.config import ServerConfig, split_address
@@ -56,8 +57,12 @@ class HttpClient:
 
     def get(self, path: str, timeout: float) -> bytes:
         """The body of GET `path`; urllib's HTTPError (an OSError) for a 4xx or 5xx, URLError when unreachable."""
+        return self.fetch(path, timeout)[0]
+
+    def fetch(self, path: str, timeout: float) -> tuple[bytes, Message]:
+        """The body and headers of GET `path`; raises as `get`."""
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
         context = tls_context(self.ca_file) if self.base.startswith("https:") else None
         request = urllib.request.Request(self.base + path, headers=headers)
         with urllib.request.urlopen(request, timeout=timeout, context=context) as response:
-            return response.read()
+            return response.read(), response.headers

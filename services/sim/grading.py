@@ -138,7 +138,9 @@ def grade(record: RunRecord) -> Grading:
         return None if any(v is None for v in values) else sum(values)
 
     all_lags = list(lags.values())
-    tile_latencies = [latency for _, latency in record.tile_latencies]
+    tile_latencies = [latency for _, latency, _ in record.tile_latencies]
+    tile_ages = [age for _, _, age in record.tile_latencies if np.isfinite(age)]
+    shed = record.tile_errors.get("HTTP 503", 0)
     slip = [
         np.nanmax(per_scan[n]["t"]) - np.nanmin(per_scan[n]["t"]) - (len(per_scan[n]["t"]) - 1) / o.wall_rate
         for n in names
@@ -186,6 +188,10 @@ def grade(record: RunRecord) -> Grading:
         tile_error_kinds=record.tile_errors,
         tile_latency_p50_s=percentile(tile_latencies, 50),
         tile_latency_p99_s=percentile(tile_latencies, 99),
+        tile_shed=shed,
+        tile_shed_fraction=shed / (len(tile_latencies) + sum(record.tile_errors.values()) or 1),
+        tile_age_p99_s=percentile(tile_ages, 99),
+        tile_age_max_s=max(tile_ages, default=None),
         cpu_s={k: round(v, 2) for k, v in record.cpu_s.items()},
         realtime_factor=o.duration * cpu_cores() / busy,
         schedule_slip_s=max(slip, default=None),
@@ -230,7 +236,7 @@ def mission_windows(record: RunRecord, windows: int = MISSION_WINDOWS) -> list[M
     for t, b in record.server_rss:
         rss[which(t)] = b or rss[which(t)]
     latencies: list[list[float]] = [[] for _ in range(windows)]
-    for t, latency in record.tile_latencies:
+    for t, latency, _ in record.tile_latencies:
         latencies[which(t)].append(latency)
     payload = {kind: [0] * windows for kind in ("scan", "poses")}
     for e in record.events:

@@ -40,7 +40,8 @@ class RunRecord:
     events: list[WireEvent] = field(default_factory=list)
     link_bytes: dict[str, tuple[int, int]] = field(default_factory=dict)  # robot -> (up, down)
     snapshots: list[Snapshot] = field(default_factory=list)
-    tile_latencies: list[tuple[float, float]] = field(default_factory=list)  # (epoch s asked, s to answer)
+    # (epoch s asked, s to answer, X-Map-Age s) of each tile answered
+    tile_latencies: list[tuple[float, float, float]] = field(default_factory=list)
     tile_errors: dict[str, int] = field(default_factory=dict)  # failed requests by kind
     published: dict[str, int] = field(default_factory=dict)  # scans each agent fitted and sent
     stored: dict[tuple[str, int], bytes] = field(default_factory=dict)  # the server's store

@@ -115,6 +115,11 @@ def markdown(r: SimReport) -> str:
         ("graded cells", _fmt(r.auroc_cells)),
         ("ingest lag p50 / p99 / max (s)", lag),
         (
+            "tiles shed (503) / fraction; X-Map-Age p99 / max (s)",
+            f"{_fmt(r.tile_shed)} / {_fmt(r.tile_shed_fraction, 3)}; "
+            f"{_fmt(r.tile_age_p99_s, 3)} / {_fmt(r.tile_age_max_s, 3)}",
+        ),
+        (
             "tiles fetched / errors; latency p50 / p99 (s)",
             f"{_fmt(r.tile_requests)} / {_fmt(r.tile_errors)}{f' ({error_kinds})' if r.tile_errors else ''}; {tiles}",
         ),

@@ -97,6 +97,10 @@ class SimReport:
     tile_error_kinds: dict[str, int]
     tile_latency_p50_s: float | None
     tile_latency_p99_s: float | None
+    tile_shed: int  # answered 503 (the tracers saturated), of tile_errors
+    tile_shed_fraction: float  # of all tile requests
+    tile_age_p99_s: float | None  # X-Map-Age of the answers: how stale the tiles served were
+    tile_age_max_s: float | None
     # processor time
     cpu_s: dict[str, float]  # "server", "agents", "harness"
     realtime_factor: float

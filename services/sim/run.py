@@ -45,10 +45,9 @@ from services.sim.tap import WireTap
 
 TILE = 256  # cells per tile side, as the viewer asks
 SNAPSHOT_CELLS = 500_000  # per request: the server's map lock is free for ingest between requests
-ACK_TIMEOUT_S = 120.0
-SNAPSHOTS = (
-    12  # graded instants of a run, about  # the agents' --timeout: how long one waits for Acks after its last scan
-)
+ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
+SHED_WAIT_S = 5.0  # the longest Retry-After a tile client honours
+SNAPSHOTS = 12  # graded instants of a run, about
 
 
 def fetch_occupancy(client: HttpClient, grid: Grid) -> np.ndarray:
@@ -77,8 +76,9 @@ def tile_urls(grid: Grid) -> list[str]:
 
 
 def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) -> None:
-    """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set; puts ((asked,
-    latency) pairs, errors by kind) on `results`."""
+    """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set, as a viewer
+    does: a shed request (503) waits its Retry-After (at most SHED_WAIT_S) before the next. Puts
+    ((asked, latency, X-Map-Age) of the answered requests, failures by kind) on `results`."""
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
@@ -86,9 +86,14 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
         while not stop.is_set():
             asked, start = time.time(), time.perf_counter()
             try:
-                http.get(rng.choice(urls), timeout=60)
+                _, headers = http.fetch(rng.choice(urls), timeout=60)
                 with lock:
-                    latencies.append((asked, time.perf_counter() - start))
+                    latencies.append((asked, time.perf_counter() - start, float(headers.get("X-Map-Age", "nan"))))
+            except urllib.error.HTTPError as error:
+                with lock:
+                    errors[f"HTTP {error.code}"] += 1
+                if error.code == 503:
+                    stop.wait(min(SHED_WAIT_S, float(error.headers.get("Retry-After", 1))))
             except OSError as error:
                 kind = f"HTTP {error.code}" if isinstance(error, urllib.error.HTTPError) else repr(error)[:120]
                 with lock:
@@ -112,8 +117,8 @@ class TileClients:
         self._process = spawn.Process(target=fetch_tiles, args=args, daemon=True)
         self._process.start()
 
-    def stop(self) -> tuple[list[tuple[float, float]], dict[str, int]]:
-        """((epoch s asked, latency s) of the answered requests, failed requests by kind of failure)."""
+    def stop(self) -> tuple[list[tuple[float, float, float]], dict[str, int]]:
+        """((epoch s asked, latency s, X-Map-Age s) of the answered requests, failures by kind)."""
         self._stop.set()
         answer = self._results.get(timeout=120)
         self._process.join()
