@@ -51,12 +51,19 @@ SNAPSHOTS = 12  # graded instants of a run, about
 
 
 def fetch_occupancy(client: HttpClient, grid: Grid) -> np.ndarray:
-    """GET /v1/occupancy as npy, slab by slab."""
+    """GET /v1/occupancy as npy, slab by slab; a slab shed (503) is asked again after its Retry-After."""
     arrays = []
     for slab in slabs(grid, SNAPSHOT_CELLS):
         bbox = ",".join(repr(float(v)) for v in (*slab.origin, *slab.upper))
-        body = client.get(f"/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy", timeout=300)
-        arrays.append(np.load(io.BytesIO(body)))
+        path = f"/v1/occupancy?bbox={bbox}&resolution={slab.resolution}&format=npy"
+        while True:
+            try:
+                arrays.append(np.load(io.BytesIO(client.get(path, timeout=300))))
+                break
+            except urllib.error.HTTPError as error:
+                if error.code != 503:  # shed while the tracers are saturated: the grader asks again
+                    raise
+                time.sleep(float(error.headers.get("Retry-After", 1)))
     return np.concatenate(arrays)
 
 
