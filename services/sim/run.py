@@ -267,25 +267,35 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             record.snapshots.append(Snapshot(t, stored, path))
             return time.time() - t
 
-        # A bounded number of graded instants however long the mission, each >= 3x the last fetch apart:
-        # grading takes <= 1/4 of the server.
+        # A bounded number of graded instants however long the mission, each >= 3x the last fetch apart
+        # (grading takes <= 1/4 of the server), taken on a thread of their own: a snapshot waiting for
+        # busy tracers does not hold up the harness' sampling.
         every = max(2.0, o.wall_duration / SNAPSHOTS)
         deadline = time.monotonic() + o.wall_duration + ACK_TIMEOUT_S + 60
-        next_snapshot = time.monotonic() + every
+        driving = threading.Event()
+
+        def snapshots_while_driving() -> None:
+            wait = every
+            while not driving.wait(wait):
+                if tap.counts()[1]:
+                    wait = max(every, 3 * snapshot())
+
+        snapshotter = threading.Thread(target=snapshots_while_driving, name="gmmap-snapshots", daemon=True)
+        snapshotter.start()
         total = o.robots * o.scans
         with (
             tqdm(total=total, desc="published", unit="scan", file=sys.stderr) as published,
             tqdm(total=total, desc="stored", unit="scan", file=sys.stderr) as stored,
         ):
             while any(procs.reap(g) is None for g in set(group_of.values())) and time.monotonic() < deadline:
-                if stored.n and time.monotonic() >= next_snapshot:
-                    next_snapshot = time.monotonic() + max(every, 3 * snapshot())
                 published.n, stored.n = tap.counts()
                 record.server_rss.append((time.time(), resident_bytes(procs.running["server"].pid)))
                 published.refresh()
                 stored.refresh()
                 time.sleep(0.2)
             published.n, stored.n = tap.counts()
+        driving.set()
+        snapshotter.join()
         if clients is not None:
             record.tile_latencies, record.tile_errors = clients.stop()
             clients = None
