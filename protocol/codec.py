@@ -206,8 +206,7 @@ def _decode_mixture(f: Fields, stream: bytes, count: int, dim: int, encoding: st
     bounds = f.array("b", "bounds", "<f4", 2 * dim)
     if (bounds[:dim] > bounds[dim:]).any():
         raise ProtocolError(f.name("bounds"), "lower corner above upper corner")
-    mixture = dequantize(bounds, stream, count, dim, f.prefix)
-    return Mixture(mixture.weights, mixture.means, mixture.covariances, support)
+    return dequantize(bounds, stream, count, dim, f.prefix, support)
 
 
 # --- scan message
