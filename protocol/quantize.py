@@ -169,16 +169,14 @@ def dequantize(
     means, covs, weights, status = _decode(stream, n_components, widths, bounds, dim, 2 ** MEAN_BITS[dim] - 1)
     check_status(status, stream, n_components, widths, f"{field}.components")
     if n_components:
-        weights /= weights.sum()
+        weights /= weights.sum()  # numpy's pairwise sum, as the reference's
     return Mixture(weights, means, covs, support)
 
 
 @njit(cache=True)
 def _decode(stream, n_components, widths, bounds, dim, mean_top):
     codes, status = read_codes(stream, n_components, widths)
-    if status != READ:
-        n_components = 0
-    means, covs, weights = _dequantize_codes(codes[:n_components], bounds, dim, mean_top)
+    means, covs, weights = _dequantize_codes(codes[: n_components if status == READ else 0], bounds, dim, mean_top)
     return means, covs, weights, status
 
 

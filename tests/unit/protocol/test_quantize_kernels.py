@@ -55,7 +55,7 @@ def reference_decode(bounds, stream, count, dim, support):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_decode_of_random_streams_matches_the_reference_bit_for_bit(dim):
     rng = np.random.default_rng(dim)
-    for count in [0, 1, 2, 3, 7, 8, 9, *rng.integers(10, 400, 40)]:
+    for count in [0, 1, 2, 3, 7, 8, 9, 127, 128, 129, 4096, *rng.integers(10, 400, 40)]:  # np.sum's blocks of 8, 128
         stream, bounds = valid_stream(rng, count, dim), random_bounds(rng, dim)
         got = qz.dequantize(bounds, stream, count, dim, "occupied", 5)
         assert_same_bits(got, reference_decode(bounds, stream, count, dim, 5))
