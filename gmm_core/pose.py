@@ -6,6 +6,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+_IDENTITY = {2: np.eye(2), 3: np.eye(3)}
+
+
+def _determinant(R: np.ndarray) -> float:
+    """Of a 2x2 or 3x3 matrix, by cofactors: for a near-rotation (|det| near 1) its sign is np.linalg.det's."""
+    rows = R.tolist()
+    if len(rows) == 2:
+        (a, b), (c, d) = rows
+        return a * d - b * c
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
 
 @dataclass(frozen=True)
 class Pose:
@@ -22,8 +34,8 @@ class Pose:
             raise ValueError(f"pose: R must be (d, d) and t (d,) with d in 2, 3; got {R.shape}, {t.shape}")
         if not (np.isfinite(R).all() and np.isfinite(t).all()):
             raise ValueError("pose: non-finite values")
-        # Plain arithmetic rather than np.allclose: poses are built per scan, by the thousand.
-        if np.abs(R @ R.T - np.eye(d)).max() > 1e-6 or np.linalg.det(R) < 0:
+        # Plain arithmetic rather than np.allclose or np.linalg.det: poses are built per scan, by the thousand.
+        if np.abs(R @ R.T - _IDENTITY[d]).max() > 1e-6 or _determinant(R) < 0:
             raise ValueError("pose: R is not a rotation matrix")
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)

@@ -178,7 +178,7 @@ def _encode_mixture(mixture: Mixture, encoding: str, field: str) -> dict:
     return wire
 
 
-def _component_count(stream: bytes, dim: int, encoding: str, field: str) -> int:
+def _component_count(stream: np.ndarray, dim: int, encoding: str, field: str) -> int:
     """K follows from the length of "c": 4 * columns bytes per f32 row; for "q", records of
     record_bits(dim) > 8 bits padded to a whole byte, so each length fits at most one K."""
     if encoding == "f32":
@@ -192,7 +192,7 @@ def _component_count(stream: bytes, dim: int, encoding: str, field: str) -> int:
     return count
 
 
-def _decode_mixture(f: Fields, stream: bytes, count: int, dim: int, encoding: str) -> Mixture:
+def _decode_mixture(f: Fields, stream: np.ndarray, count: int, dim: int, encoding: str) -> Mixture:
     support = f.int("N", "support")
     if encoding == "f32":
         table = np.frombuffer(stream, "<f4").reshape(count, _f32_columns(dim))
@@ -204,10 +204,10 @@ def _decode_mixture(f: Fields, stream: bytes, count: int, dim: int, encoding: st
     if count == 0:
         return Mixture(np.zeros(0), np.zeros((0, dim)), np.zeros((0, dim, dim)), support)
     bounds = f.array("b", "bounds", "<f4", 2 * dim)
-    if (bounds[:dim] > bounds[dim:]).any():
+    corners = bounds.tolist()  # Python floats: quicker than numpy for the few numbers of a box
+    if any(low > high for low, high in zip(corners[:dim], corners[dim:])):
         raise ProtocolError(f.name("bounds"), "lower corner above upper corner")
-    mixture = dequantize(bounds, stream, count, dim, f.prefix)
-    return Mixture(mixture.weights, mixture.means, mixture.covariances, support)
+    return dequantize(bounds, stream, count, dim, f.prefix, support)
 
 
 # --- scan message
@@ -244,7 +244,7 @@ def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
     if max_range <= 0:
         raise ProtocolError("max_range", f"must be > 0, got {max_range}")
     parts = [Fields(f.get(key, name), name) for key, name in (("O", "occupied"), ("F", "free"))]
-    streams = [part.array("c", "components", "u1").tobytes() for part in parts]
+    streams = [part.array("c", "components", "u1") for part in parts]
     counts = [_component_count(stream, dim, encoding, part.name("components")) for part, stream in zip(parts, streams)]
     if sum(counts) > max_components:
         raise ProtocolError("components", f"{sum(counts)} components exceed the maximum of {max_components}")

@@ -12,9 +12,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from gmm_core.mixture import Mixture
-from protocol.errors import ProtocolError
+from protocol.bitstream import READ, as_stream, check_status, pack_records, read_codes
 
 MEAN_BITS = {2: 13, 3: 14}  # per axis, over the mixture's box of means
 LOG_STD_BITS = 9
@@ -47,39 +48,27 @@ def record_fields(dim: int) -> tuple[tuple[str, int], ...]:
     return means + stds + rotation + (("weight", WEIGHT_BITS),)
 
 
+FIELD_WIDTHS = {dim: np.array([bits for _, bits in record_fields(dim)], dtype=np.int64) for dim in (2, 3)}
+
+
+RECORD_BITS = {dim: int(widths.sum()) for dim, widths in FIELD_WIDTHS.items()}
+
+
 def record_bits(dim: int) -> int:
-    return sum(bits for _, bits in record_fields(dim))
+    return RECORD_BITS[dim]
 
 
 def stream_bytes(n_components: int, dim: int) -> int:
     return (n_components * record_bits(dim) + 7) // 8
 
 
-# --- bit packing: K records of fixed-width unsigned fields, LSB-first, one continuous stream
-
-
-def pack_records(columns: list[np.ndarray], widths: list[int]) -> bytes:
-    bits = [
-        (col.astype(np.uint64)[:, None] >> np.arange(w, dtype=np.uint64)) & np.uint64(1)
-        for col, w in zip(columns, widths)
-    ]
-    return np.packbits(np.concatenate(bits, axis=1).astype(np.uint8).reshape(-1), bitorder="little").tobytes()
-
-
-def unpack_records(data: bytes, n_records: int, widths: list[int], field: str) -> list[np.ndarray]:
-    total = sum(widths)
-    expected = (n_records * total + 7) // 8
-    if len(data) != expected:
-        raise ProtocolError(field, f"expected {expected} bytes for {n_records} components, got {len(data)}")
-    bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8), bitorder="little")
-    if bits[n_records * total :].any():  # the pad up to a whole byte is zero, so a stream is canonical
-        raise ProtocolError(field, "padding bits after the last component must be zero")
-    records = bits[: n_records * total].reshape(n_records, total).astype(np.int64)
-    offsets = np.cumsum([0] + list(widths))
-    return [
-        records[:, lo : lo + w] @ (np.int64(1) << np.arange(w, dtype=np.int64)) for lo, w in zip(offsets[:-1], widths)
-    ]
-
+# What each code decodes to, by the numpy expressions of the reference decoder
+# (tests/support/quantize_reference.py), so that the kernel's look-ups give numpy's exp, cos and sin.
+VARIANCE_OF_CODE = np.exp(2 * (LOG_STD_MIN + np.arange(LOG_STD_CODE_MAX + 1) * LOG_STD_STEP))
+_ANGLE_OF_CODE = np.arange(ANGLE_STEPS) * (QUARTER_TURN / ANGLE_STEPS)
+COS_OF_CODE, SIN_OF_CODE = np.cos(_ANGLE_OF_CODE), np.sin(_ANGLE_OF_CODE)
+QUAT_OF_CODE = np.arange(QUAT_MAX + 1) * (2 * QUAT_HALF_RANGE / QUAT_MAX) - QUAT_HALF_RANGE
+WEIGHT_OF_CODE = np.exp2(np.arange(WEIGHT_MAX + 1) / WEIGHT_STEPS_PER_OCTAVE)
 
 # --- rotations, vectorised over components
 
@@ -134,18 +123,6 @@ def _quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     return _unit(candidates[np.arange(len(R)), np.argmax(diag, axis=1)])
 
 
-def _matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
-        ],
-        axis=1,
-    )
-
-
 # --- the encoding
 
 
@@ -179,30 +156,84 @@ def quantize(mixture: Mixture) -> tuple[np.ndarray, bytes]:
         octaves = np.log2(mixture.weights / mixture.weights.max())
     weight_codes = np.clip(WEIGHT_MAX + np.rint(octaves * WEIGHT_STEPS_PER_OCTAVE), 0, WEIGHT_MAX)
 
-    columns = list(mean_codes.T) + list(std_codes.T) + rotation_codes + [weight_codes]
-    return np.concatenate([lo, hi]), pack_records(columns, [bits for _, bits in record_fields(d)])
+    codes = np.column_stack([mean_codes, std_codes, *rotation_codes, weight_codes])
+    return np.concatenate([lo, hi]), pack_records(codes, FIELD_WIDTHS[d])
 
 
-def dequantize(bounds: np.ndarray, stream: bytes, n_components: int, dim: int, field: str) -> Mixture:
-    """(bounds, stream) -> Mixture with `support` 0 (the caller sets it); raises ProtocolError."""
-    columns = unpack_records(stream, n_components, [bits for _, bits in record_fields(dim)], f"{field}.components")
-    if n_components == 0:
-        return Mixture.empty(dim)
-    lo, hi = bounds[:dim].astype(np.float64), bounds[dim:].astype(np.float64)
-    mean_codes = np.stack(columns[:dim], axis=1)
-    means = lo + mean_codes * ((hi - lo) / (2 ** MEAN_BITS[dim] - 1))
-    log_std = LOG_STD_MIN + np.stack(columns[dim : 2 * dim], axis=1) * LOG_STD_STEP
-    if dim == 2:
-        theta = columns[2 * dim] * (QUARTER_TURN / ANGLE_STEPS)
-        c, s = np.cos(theta), np.sin(theta)
-        rotations = np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)
-    else:
-        rotations = _dequantize_rotation(columns[2 * dim], np.stack(columns[2 * dim + 1 : 2 * dim + 4], axis=1))
-    variances = np.exp(2 * log_std)
-    covs = np.einsum("kij,kj,klj->kil", rotations, variances, rotations)
-    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
-    weights = np.exp2(columns[-1] / WEIGHT_STEPS_PER_OCTAVE)
-    return Mixture(weights / weights.sum(), means, covs, 0)
+def dequantize(
+    bounds: np.ndarray, stream: bytes | np.ndarray, n_components: int, dim: int, field: str, support: int = 0
+) -> Mixture:
+    """(float32 bounds, stream) -> Mixture; raises ProtocolError. `stream` is bytes or a uint8 array."""
+    stream = as_stream(stream)
+    widths = FIELD_WIDTHS[dim]
+    means, covs, weights, status = _decode(stream, n_components, widths, bounds, dim, 2 ** MEAN_BITS[dim] - 1)
+    check_status(status, stream, n_components, widths, f"{field}.components")
+    if n_components:
+        weights /= weights.sum()  # numpy's pairwise sum, as the reference's
+    return Mixture(weights, means, covs, support)
+
+
+@njit(cache=True)
+def _decode(stream, n_components, widths, bounds, dim, mean_top):
+    codes, status = read_codes(stream, n_components, widths)
+    means, covs, weights = _dequantize_codes(codes[: n_components if status == READ else 0], bounds, dim, mean_top)
+    return means, covs, weights, status
+
+
+@njit(cache=True)
+def _dequantize_codes(codes, bounds, dim, mean_top):
+    """(K, fields) codes, float32 [lo, hi] -> means, covariances R diag(v) R^T and weights not yet
+    normalised; each in the reference's order of operations (einsum: a sum over j from 0.0 of
+    (R_ij v_j) R_lj), so the bits agree."""
+    n = codes.shape[0]
+    means, covs, weights = np.empty((n, dim)), np.empty((n, dim, dim)), np.empty(n)
+    lo = bounds[:dim].astype(np.float64)
+    step = (bounds[dim:].astype(np.float64) - lo) / mean_top
+    rotation, full = np.empty((dim, dim)), np.empty((dim, dim))
+    for k in range(n):
+        for axis in range(dim):
+            means[k, axis] = lo[axis] + codes[k, axis] * step[axis]
+        if dim == 2:
+            _rotation_2d(codes[k, 4], rotation)
+        else:
+            _rotation_3d(codes[k, 6], codes[k, 7:10], rotation)
+        for i in range(dim):
+            for m in range(dim):
+                total = 0.0
+                for j in range(dim):
+                    total += (rotation[i, j] * VARIANCE_OF_CODE[codes[k, dim + j]]) * rotation[m, j]
+                full[i, m] = total
+        for i in range(dim):
+            for m in range(dim):
+                covs[k, i, m] = 0.5 * (full[i, m] + full[m, i])
+        weights[k] = WEIGHT_OF_CODE[codes[k, -1]]
+    return means, covs, weights
+
+
+@njit(cache=True)
+def _rotation_2d(code, out):
+    c, s = COS_OF_CODE[code], SIN_OF_CODE[code]
+    out[0, 0], out[0, 1], out[1, 0], out[1, 1] = c, -s, s, c
+
+
+@njit(cache=True)
+def _rotation_3d(largest, codes, out):
+    """The quaternion's three smaller components in index order, the largest one (dropped) from
+    the unit norm: clamped at 0, as corrupt codes can make the three exceed a unit vector."""
+    q = np.empty(4)
+    squares = 0.0
+    slot = 0
+    for j in range(4):
+        if j != largest:
+            q[j] = QUAT_OF_CODE[codes[slot]]
+            squares += q[j] * q[j]
+            slot += 1
+    q[largest] = np.sqrt(max(0.0, 1.0 - squares))
+    norm = np.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])
+    w, x, y, z = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
+    out[0, 0], out[0, 1], out[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    out[1, 0], out[1, 1], out[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    out[2, 0], out[2, 1], out[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
 
 
 def _round_clamp(values: np.ndarray, top: int) -> np.ndarray:
@@ -271,14 +302,3 @@ def _quantize_quaternion(q: np.ndarray) -> list[np.ndarray]:
     keep = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
     rest = np.take_along_axis(q, keep, axis=1)
     return [largest] + list(_round_clamp((rest + QUAT_HALF_RANGE) / (2 * QUAT_HALF_RANGE) * QUAT_MAX, QUAT_MAX).T)
-
-
-def _dequantize_rotation(largest: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    rest = codes * (2 * QUAT_HALF_RANGE / QUAT_MAX) - QUAT_HALF_RANGE
-    # Corrupt codes can make the three exceed a unit vector; clamping keeps R a rotation.
-    big = np.sqrt(np.maximum(0.0, 1.0 - np.sum(rest**2, axis=1)))
-    q = np.empty((len(largest), 4))
-    keep = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
-    np.put_along_axis(q, keep, rest, axis=1)
-    q[np.arange(len(q)), largest] = big
-    return _matrix_from_quaternion(q / np.linalg.norm(q, axis=1, keepdims=True))

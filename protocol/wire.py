@@ -8,6 +8,7 @@ states the type it wants. bool is rejected where an int is wanted (in Python it 
 from __future__ import annotations
 
 import builtins
+import functools
 import math
 
 import numpy as np
@@ -53,14 +54,28 @@ class Fields:
             return None
         if type(value) is not bytes:
             raise ProtocolError(self.name(name), f"must be bin (raw bytes), got {type(value).__name__}")
-        itemsize = np.dtype(dtype).itemsize
-        if len(value) % itemsize or (count is not None and len(value) != count * itemsize):
+        array = np.frombuffer(value, dtype=dtype) if len(value) % _itemsize(dtype) == 0 else None
+        if array is None or (count is not None and len(array) != count):
+            itemsize = _itemsize(dtype)
             wanted = f"{count} x {itemsize}" if count is not None else f"a multiple of {itemsize}"
             raise ProtocolError(self.name(name), f"must hold {wanted} bytes, got {len(value)}")
-        array = np.frombuffer(value, dtype=dtype)
-        if array.dtype.kind == "f" and not np.isfinite(array).all():
+        if array.dtype.kind == "f" and not _all_finite(array):
             raise ProtocolError(self.name(name), "must be finite (no NaN or inf)")
         return array
+
+
+@functools.cache
+def _itemsize(dtype: str) -> int:
+    return np.dtype(dtype).itemsize
+
+
+SMALL_ARRAY = 32  # entries; below it numpy's two calls per check cost more than Python's loop
+
+
+def _all_finite(array: np.ndarray) -> bool:
+    if len(array) < SMALL_ARRAY:  # poses, sensor origins, boxes of means: the checks of every scan
+        return all(map(math.isfinite, array.tolist()))
+    return bool(np.isfinite(array).all())
 
 
 # --- writing: one byte string per value
@@ -120,9 +135,9 @@ def pose_bytes(poses, dtype: str, field: str) -> bytes:
 def pose_from_vector(vector: np.ndarray, field: str) -> Pose:
     """Wire values -> Pose: 2D theta may be any finite number; a 3D quaternion must have a norm
     within 1e-3 of 1 and is normalised."""
-    vector = vector.astype(np.float64)
     if len(vector) == 3:
-        return Pose.from_xytheta(*vector)
+        return Pose.from_xytheta(*vector.tolist())  # Python floats: exact, and quicker than numpy scalars
+    vector = vector.astype(np.float64)
     norm = np.linalg.norm(vector[3:])
     if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
         raise ProtocolError(field, f"quaternion norm {norm:.6g} is not 1")

@@ -11,6 +11,7 @@ import msgpack
 
 from gmm_core.mixture import Mixture
 from protocol import quantize as qz
+from protocol.bitstream import unpack_records
 from protocol.codec import decode
 from protocol.messages import Ack, MapQuery, Message, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
 from protocol.wire import pose_vector
@@ -95,8 +96,8 @@ def record_codes(raw_mixture: dict, dim: int) -> list[dict]:
     fields = qz.record_fields(dim)
     stream = raw_mixture["c"]
     count = 8 * len(stream) // qz.record_bits(dim)
-    columns = qz.unpack_records(stream, count, [bits for _, bits in fields], "components")
-    return [{name: int(column[k]) for (name, _), column in zip(fields, columns)} for k in range(count)]
+    codes = unpack_records(stream, count, qz.FIELD_WIDTHS[dim], "components")
+    return [{name: int(code) for (name, _), code in zip(fields, record)} for record in codes]
 
 
 def describe(data: bytes, about: str, encoding: str, fixed_point: bool) -> dict:
