@@ -73,6 +73,11 @@ class FleetMap:
         with self._lock:
             return self._nodes.add(msg, size_bytes, raw)
 
+    def add_scans(self, scans: Sequence[tuple[ScanMessage, int, bytes | None]]) -> list[bool]:
+        """Hold each (message, wire size, raw bytes or None) of an ingest batch; whether each was new."""
+        with self._lock:
+            return self._nodes.add_many(scans)
+
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
         """Re-pose nodes (Eq. 2 at query time), node by node: a listed node takes the update's pose
         unless a newer revision set it (an equal one may be another part), the anchor likewise.

@@ -233,11 +233,11 @@ class Ingest:
         if not scans:
             return
         new = state.store.put_scans(scans)  # committed: from here on they may be acknowledged
+        state.fleet_map.add_scans([(m, len(raw), raw) for m, raw in scans])  # a held correction applies as it lands
         acks: dict[str, list[int]] = defaultdict(list)
         for (message, payload), added in zip(scans, new):
             if added:
                 self._add_usage(message.robot, len(payload))
-            state.fleet_map.add_scan(message, len(payload), payload)  # a held correction applies as it lands
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
             acks[message.robot].append(message.node)  # duplicates too: the sender must stop resending

@@ -235,34 +235,58 @@ class NodeStore:
     def add(self, msg: ScanMessage, size_bytes: int = 0, raw: bytes | None = None) -> bool:
         """Hold a scan; False if (robot, node) is already held (a resend). `raw`: `msg` as received,
         held instead of the decoded model."""
-        if self.dim is None:
-            self.dim = msg.dim
-            self._index = NodeIndex(msg.dim)
-        elif msg.dim != self.dim:
-            raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
-        robot = self.robots.setdefault(msg.robot, Robot())
-        robot.last_seen = time.time()
-        robot.bytes_received += size_bytes
-        if msg.node in robot.nodes:
-            return False
-        lo, hi = local_reach(msg.model)
-        node = Node(
-            NodeKey(msg.robot, msg.node),
-            None if raw is None else bytes(raw),
-            msg.model if raw is None else None,
-            msg.model.origin,
-            robot.graph.pose(msg.node) or msg.pose,  # a correction that came before its scan, else its estimate
-            scan_seed(msg.robot, msg.node),
-            lo,
-            hi,
-        )
-        robot.nodes[msg.node] = node
-        robot.components += msg.model.n_components
-        world_lo, world_hi = world_boxes([node.map_pose], lo[None], hi[None], robot.anchor)
-        self._index.put([node.key], world_lo, world_hi)
-        self.log.extend([node.key])
-        self._moved(world_lo, world_hi)
-        return True
+        return self.add_many([(msg, size_bytes, raw)])[0]
+
+    def add_many(self, scans: Sequence[tuple[ScanMessage, int, bytes | None]]) -> list[bool]:
+        """Hold each (message, wire size, raw bytes or None) as `add`; whether each was new.
+
+        One ingest batch at a time: the new nodes' world boxes are made per robot, and the index,
+        the change log and the tiles are told once for the whole batch.
+        """
+        added: dict[str, list[Node]] = {}
+        new = []
+        for msg, size_bytes, raw in scans:
+            if self.dim is None:
+                self.dim = msg.dim
+                self._index = NodeIndex(msg.dim)
+            elif msg.dim != self.dim:
+                raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
+            robot = self.robots.setdefault(msg.robot, Robot())
+            robot.last_seen = time.time()
+            robot.bytes_received += size_bytes
+            new.append(msg.node not in robot.nodes)
+            if not new[-1]:
+                continue
+            lo, hi = local_reach(msg.model)
+            node = Node(
+                NodeKey(msg.robot, msg.node),
+                None if raw is None else bytes(raw),
+                msg.model if raw is None else None,
+                msg.model.origin,
+                robot.graph.pose(msg.node) or msg.pose,  # a correction that came before its scan, else its estimate
+                scan_seed(msg.robot, msg.node),
+                lo,
+                hi,
+            )
+            robot.nodes[msg.node] = node
+            robot.components += msg.model.n_components
+            added.setdefault(msg.robot, []).append(node)
+        if added:
+            boxes = [
+                world_boxes(
+                    [n.map_pose for n in nodes],
+                    np.array([n.local_lo for n in nodes]),
+                    np.array([n.local_hi for n in nodes]),
+                    self.robots[name].anchor,
+                )
+                for name, nodes in added.items()
+            ]
+            keys = [n.key for nodes in added.values() for n in nodes]
+            world_lo, world_hi = np.concatenate([b[0] for b in boxes]), np.concatenate([b[1] for b in boxes])
+            self._index.put(keys, world_lo, world_hi)
+            self.log.extend(keys)
+            self._moved(world_lo, world_hi)
+        return new
 
     def apply(self, update: PoseGraphUpdate) -> bool:
         """Re-pose nodes (Eq. 2 at query time), node by node: each listed node that no newer revision

@@ -124,3 +124,21 @@ def test_random_histories_with_scans_arriving_between_agree_with_the_plain_model
     anchor_x = reference.anchor[1] if reference.anchor is not None else 0.0  # all poses are along x
     for n in store.robots["r"].nodes:
         assert store.posed(NodeKey("r", n)).pose.t[0] == anchor_x + where(after, n)[0]
+
+
+def test_a_batch_of_scans_is_held_as_the_same_scans_one_by_one(model):
+    boxes = []
+    one_by_one = NodeStore(moved=lambda lo, hi: boxes.append((lo, hi)))
+    batched = NodeStore(moved=lambda lo, hi: boxes.append((lo, hi)))
+    messages = [scan(model, n, x=0.5 * n) for n in range(5)] + [scan(model, 2, x=9.0)]  # node 2 twice
+    messages.append(ScanMessage(FLEET, "q", 0, 0.0, model, pose(3.0)))
+    assert [one_by_one.add(m, 10) for m in messages] == [True] * 5 + [False, True]
+    assert batched.add_many([(m, 10, None) for m in messages]) == [True] * 5 + [False, True]
+    assert len(boxes) == 6 + 1  # one by one, then once for the whole batch
+    for robot in ("r", "q"):
+        assert np.array_equal(batched.trajectory(robot), one_by_one.trajectory(robot))
+    assert batched.robot_rows() == [
+        {**row, "last_seen": batched.robots[row["robot"]].last_seen} for row in one_by_one.robot_rows()
+    ]
+    assert np.array_equal(np.concatenate([lo for lo, _ in boxes[:6]]), boxes[6][0])
+    assert batched.log.since(0) == one_by_one.log.since(0)
