@@ -114,3 +114,24 @@ def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:
         return q / np.linalg.norm(q)
     angle = np.arccos(dot)
     return (np.sin((1 - fraction) * angle) * q0 + np.sin(fraction * angle) * q1) / np.sin(angle)
+
+
+def poses_from_arrays(R: np.ndarray, t: np.ndarray) -> list[Pose]:
+    """Pose(R[i], t[i]) for each i, with Pose's checks made once over all of them (vectorised):
+    a store reads its poses by the hundred thousand at a restart, and Pose's own checks cost ten
+    times the object. Raises what Pose raises for the first pose it would refuse."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 2 or t.shape[1] not in (2, 3) or R.shape != (*t.shape, t.shape[1]):
+        raise ValueError(f"pose: R must be (n, d, d) and t (n, d) with d in 2, 3; got {R.shape}, {t.shape}")
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        raise ValueError("pose: non-finite values")
+    if len(t) and (np.abs(R @ R.transpose(0, 2, 1) - np.eye(t.shape[1])).max() > 1e-6 or np.linalg.det(R).min() < 0):
+        raise ValueError("pose: R is not a rotation matrix")
+    poses = []
+    for rotation, translation in zip(R, t):
+        pose = object.__new__(Pose)  # checked above: __post_init__ would only repeat the checks
+        object.__setattr__(pose, "R", rotation)
+        object.__setattr__(pose, "t", translation)
+        poses.append(pose)
+    return poses

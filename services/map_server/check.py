@@ -13,16 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import PoseGraphUpdate, ProtocolError, ScanMessage, decode
+from protocol import ProtocolError, ScanMessage, decode
 
-from .store import DB_NAME
+from .pose_graph import PoseGraph
+from .store import DB_NAME, merged_columns, read_graph
 
 
 @dataclass
 class StoreCheck:
     integrity: str  # what PRAGMA integrity_check says: "ok" when sound
     scans: int = 0
-    poses: int = 0
+    poses: int = 0  # robots with a pose graph
     bad: list[str] = field(default_factory=list)  # rows that do not decode, or disagree with their key
 
     @property
@@ -46,34 +47,38 @@ def check_store(data_dir: str | Path) -> StoreCheck:
                     )
             except ProtocolError as error:
                 result.bad.append(f"scan {fleet}/{robot}/{node}: {error}")
-        columns = {row[1] for row in db.execute("PRAGMA table_info(poses)")}
-        per_node = "node_revisions, anchor_revision" if "node_revisions" in columns else "NULL, NULL"  # a v1 store
-        for fleet, robot, revision, raw, node_revisions, anchor_revision in db.execute(
-            f"SELECT fleet, robot, revision, raw, {per_node} FROM poses"
-        ):
+        if merged_columns(db):
+            result.bad.append(
+                "poses: merged graphs of an older schema; the server converts them when it opens the store"
+            )
+            return result
+        for fleet, robot in db.execute("SELECT fleet, robot FROM poses").fetchall():
             result.poses += 1
             try:
-                m = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))  # merged graphs may be large
-                if (m.fleet, m.robot, m.revision) != (fleet, robot, revision):
-                    raise ProtocolError(
-                        "key", f"row says {fleet}/{robot} r{revision}, message {m.fleet}/{m.robot} r{m.revision}"
-                    )
-                _check_revisions(m, node_revisions, anchor_revision)
-            except ProtocolError as error:
+                _check_graph(read_graph(db, fleet, robot))
+            except ValueError as error:  # ProtocolError is one
                 result.bad.append(f"poses {fleet}/{robot}: {error}")
+        orphans = db.execute(
+            "SELECT fleet, robot, COUNT(*) FROM node_poses "
+            "WHERE (fleet, robot) NOT IN (SELECT fleet, robot FROM poses) GROUP BY fleet, robot"
+        )
+        for fleet, robot, count in orphans:
+            result.bad.append(f"node_poses {fleet}/{robot}: {count} node poses of a robot without a row in poses")
         return result
     finally:
         db.close()
 
 
-def _check_revisions(graph: PoseGraphUpdate, node_revisions: bytes | None, anchor_revision: int | None) -> None:
-    """The per-node revisions of a merged graph: one u64 per pose, none newer than the graph's."""
-    if node_revisions is not None:
-        if len(node_revisions) != 8 * len(graph.poses):
-            raise ProtocolError(
-                "node_revisions", f"{len(node_revisions)} bytes for {len(graph.poses)} poses (8 bytes each)"
-            )
-        if len(node_revisions) and int(np.frombuffer(node_revisions, dtype="<u8").max()) > graph.revision:
-            raise ProtocolError("node_revisions", f"a node's revision is newer than the graph's {graph.revision}")
-    if anchor_revision is not None and anchor_revision > graph.revision:
-        raise ProtocolError("anchor_revision", f"{anchor_revision} is newer than the graph's {graph.revision}")
+def _check_graph(graph: PoseGraph) -> None:
+    """What the store's rows must hold beyond decoding: node ids the protocol allows, and no node or
+    anchor revision newer than the graph's."""
+    nodes = np.fromiter(graph.poses, dtype=np.int64, count=len(graph.poses))
+    revisions = np.fromiter((rev for rev, _ in graph.poses.values()), dtype=np.int64, count=len(graph.poses))
+    if len(nodes) and nodes.min() < 0:
+        raise ProtocolError("node_poses.node", f"node {nodes.min()} is negative")
+    if len(revisions) and (revisions.min() < 0 or revisions.max() > graph.revision):
+        raise ProtocolError(
+            "node_poses.revision", f"revisions {revisions.min()}..{revisions.max()} outside 0..{graph.revision}"
+        )
+    if graph.anchor is not None and not 0 <= graph.anchor_revision <= graph.revision:
+        raise ProtocolError("poses.anchor_revision", f"{graph.anchor_revision} outside 0..{graph.revision}")

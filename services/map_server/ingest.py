@@ -107,14 +107,17 @@ class Ingest:
 
     def replay(self) -> int:
         """Load the store into the FleetMap (before subscribing); returns the scans loaded."""
-        scans = 0
+        fleet_map, scans, usage = self.state.fleet_map, 0, defaultdict(int)
         for record in self.state.store.load(self.state.fleet):
-            self._dim = self._dim or record.message.dim
-            if isinstance(record.message, ScanMessage):
-                scans += self.state.fleet_map.add_scan(record.message, record.size)
-                self._add_usage(record.message.robot, record.size)
+            message = record.message
+            self._dim = self._dim or message.dim
+            if isinstance(message, ScanMessage):
+                scans += fleet_map.add_scan(message, record.size)
+                usage[message.robot] += record.size
             else:
-                self.state.fleet_map.apply_poses(record.message)
+                fleet_map.apply_poses(message)
+        for robot, size in usage.items():  # once per robot, not once per scan
+            self._add_usage(robot, size)
         return scans
 
     # -- worker --------------------------------------------------------------------------------
@@ -247,7 +250,7 @@ class Ingest:
 
     def _ingest_poses(self, update: PoseGraphUpdate, payload: bytes) -> None:
         state = self.state
-        if state.store.put_poses(update, payload):
+        if state.store.put_poses(update):
             state.fleet_map.apply_poses(update)
         state.metrics.accepted.labels("poses").inc()
         state.metrics.bytes_received.labels(update.robot).inc(len(payload))

@@ -8,6 +8,7 @@ one class, so the map a restart replays judges a late update exactly as the live
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -50,7 +51,12 @@ class PoseGraph:
         newer revision changes the graph (a later part of the older revision must now lose) but
         moves nothing.
         """
-        revision, changed, moved = update.revision, False, []
+        return self.take(update)[0]
+
+    def take(self, update: PoseGraphUpdate) -> tuple[Applied, list[int]]:
+        """`apply`, and the nodes whose entry it set (a new pose, or the update's revision on an
+        equal one): the rows a store writes."""
+        revision, moved, taken = update.revision, [], []
         for node, pose in update.poses:
             held = self.poses.get(node)
             if held is not None and held[0] > revision:
@@ -60,7 +66,8 @@ class PoseGraph:
             elif held[0] == revision:
                 continue  # a resent part: nothing to take
             self.poses[node] = (revision, pose)
-            changed = True
+            taken.append(node)
+        changed = bool(taken)
         anchor_moved = False
         if update.anchor is not None and self.anchor_revision <= revision:
             anchor_moved = self.anchor is None or not same_pose(self.anchor, update.anchor)
@@ -69,32 +76,37 @@ class PoseGraph:
         # Whatever an update lists ends at its revision or a newer one, so this is also the
         # newest revision any node or the anchor holds.
         self.revision = max(self.revision, revision)
-        return Applied(changed, moved, anchor_moved)
+        return Applied(changed, moved, anchor_moved), taken
 
-    # -- as stored: the merged graph as one update, plus the revision of each of its poses ----------
+    # -- as stored -----------------------------------------------------------------------------
     def as_update(self, fleet: str, robot: str) -> PoseGraphUpdate:
         """Every pose (by node id) and the anchor, at the newest revision applied."""
         poses = tuple((node, pose) for node, (_, pose) in sorted(self.poses.items()))
         return PoseGraphUpdate(fleet, robot, self.revision, poses, self.anchor)
 
-    def is_exactly(self, update: PoseGraphUpdate) -> bool:
-        """Whether `update` alone makes this graph: it set every pose held and the anchor (then the
-        store keeps its bytes as sent, every pose at its revision). O(nodes), no pose compared."""
-        return (
-            self.anchor is update.anchor
-            and len(self.poses) == len(update.poses)
-            and all(rev == update.revision for rev, _ in self.poses.values())
-        )
-
-    def node_revisions(self) -> bytes:
-        """The revision of each pose of `as_update`, in its order: u64 little-endian."""
-        return np.array([rev for _, (rev, _) in sorted(self.poses.items())], dtype="<u8").tobytes()
+    @classmethod
+    def from_rows(
+        cls,
+        revision: int,
+        nodes: Sequence[int],
+        revisions: Sequence[int],
+        poses: Sequence[Pose],
+        anchor: Pose | None = None,
+        anchor_revision: int = -1,
+    ) -> PoseGraph:
+        """The graph holding node nodes[i] at (revisions[i], poses[i]), the anchor at anchor_revision,
+        its newest revision applied `revision`."""
+        graph = cls()
+        graph.poses = dict(zip(nodes, zip(revisions, poses)))
+        graph.anchor, graph.anchor_revision = anchor, anchor_revision if anchor is not None else -1
+        graph.revision = revision
+        return graph
 
     @classmethod
-    def from_stored(cls, merged: PoseGraphUpdate, node_revisions: bytes | None, anchor_revision: int | None):
-        """The graph `as_update`, `node_revisions` and `anchor_revision` describe; a None (a row
-        written before per-node revisions) puts every node, or the anchor, at the merged revision."""
-        graph = cls()
+    def from_merged(cls, merged: PoseGraphUpdate, node_revisions: bytes | None, anchor_revision: int | None):
+        """The graph of a store row of the first two schemas: `merged` (as_update), the revision of
+        each of its poses (u64 little-endian, in its order) and the anchor's; a None (a row written
+        before per-node revisions) puts every node, or the anchor, at the merged revision."""
         if node_revisions is None:
             revisions = [merged.revision] * len(merged.poses)
         else:
@@ -104,12 +116,9 @@ class PoseGraph:
                     f"revisions for {len(merged.poses)} poses (8 bytes each)"
                 )
             revisions = np.frombuffer(node_revisions, dtype="<u8").tolist()
-        graph.poses = {node: (rev, pose) for (node, pose), rev in zip(merged.poses, revisions)}
-        if merged.anchor is not None:
-            graph.anchor = merged.anchor
-            graph.anchor_revision = merged.revision if anchor_revision is None else anchor_revision
-        graph.revision = merged.revision
-        return graph
+        nodes, poses = [node for node, _ in merged.poses], [pose for _, pose in merged.poses]
+        anchor = merged.revision if anchor_revision is None else anchor_revision
+        return cls.from_rows(merged.revision, nodes, revisions, poses, merged.anchor, anchor)
 
     def by_revision(self, fleet: str, robot: str) -> list[PoseGraphUpdate]:
         """One update per revision still held, oldest first: applied in order to an empty graph

@@ -2,11 +2,16 @@
 
 SQLite in WAL mode, one file `gmmap.db` in the data directory. Scans are kept as the bytes
 received (the codec is the schema), so a restart decodes exactly what the robots sent and the
-same query gives the same bytes. Per robot, the pose graph is kept as one encoded
-PoseGraphUpdate at the newest revision applied, holding every node's pose and the anchor (an
-update lists only the nodes it moves; the others keep their last pose), beside the revision
-that set each of them: updates are applied node by node (pose_graph.PoseGraph), and a restart
-must judge a late update exactly as the live server did.
+same query gives the same bytes.
+
+Pose graphs are kept node by node: `node_poses` holds each node's pose and the revision that set
+it, `poses` each robot's newest revision applied and its anchor with the anchor's revision.
+Updates are applied node by node (pose_graph.PoseGraph) and one writes the rows of the nodes it
+took and its robot's row, in one transaction: it costs what it lists, not what the graph holds.
+Poses are kept as held, t then R in float64, so a restarted server compares a late update's
+poses bit for bit with the very poses the live server held (pose_graph.same_pose) and judges it
+as the live server did. A store of the first two schemas (one merged PoseGraphUpdate per robot
+in `poses.raw`) is converted when it is opened.
 """
 
 from __future__ import annotations
@@ -15,37 +20,41 @@ import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode, encode
+import numpy as np
+
+from gmm_core import Pose
+from gmm_core.pose import poses_from_arrays
+from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode
 
 from .pose_graph import PoseGraph
 
 DB_NAME = "gmmap.db"
+SCAN_CHUNK = 2048  # scans read per query at a restart: bounded memory, and the lock held briefly
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS scans (
-    fleet TEXT NOT NULL, robot TEXT NOT NULL, node INTEGER NOT NULL,
-    stamp REAL NOT NULL, size INTEGER NOT NULL, received REAL NOT NULL, raw BLOB NOT NULL,
-    PRIMARY KEY (fleet, robot, node)
-) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS poses (
-    fleet TEXT NOT NULL, robot TEXT NOT NULL, revision INTEGER NOT NULL,
-    received REAL NOT NULL, raw BLOB NOT NULL,
-    node_revisions BLOB, anchor_revision INTEGER,
-    PRIMARY KEY (fleet, robot)
-) WITHOUT ROWID;
-"""
-# Columns added to `poses` since the first schema, as a store made before them lacks them.
-POSES_ADDED = {
-    # Revision of each pose of `raw`, in its order: u64 little-endian. NULL: every node at the row's
-    # revision (a row written before this column, or an update that makes the whole graph, kept as sent).
-    "node_revisions": "BLOB",
-    "anchor_revision": "INTEGER",  # of raw's anchor; NULL: the row's revision (or no anchor)
-}
+TABLES = (
+    """CREATE TABLE IF NOT EXISTS scans (
+        fleet TEXT NOT NULL, robot TEXT NOT NULL, node INTEGER NOT NULL,
+        stamp REAL NOT NULL, size INTEGER NOT NULL, received REAL NOT NULL, raw BLOB NOT NULL,
+        PRIMARY KEY (fleet, robot, node)
+    ) WITHOUT ROWID""",
+    "CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL)",
+    # One row per robot with a pose graph. anchor: a pose blob, NULL (and anchor_revision NULL) when none came.
+    """CREATE TABLE IF NOT EXISTS poses (
+        fleet TEXT NOT NULL, robot TEXT NOT NULL, revision INTEGER NOT NULL, received REAL NOT NULL,
+        anchor BLOB, anchor_revision INTEGER,
+        PRIMARY KEY (fleet, robot)
+    ) WITHOUT ROWID""",
+    """CREATE TABLE IF NOT EXISTS node_poses (
+        fleet TEXT NOT NULL, robot TEXT NOT NULL, node INTEGER NOT NULL,
+        revision INTEGER NOT NULL, pose BLOB NOT NULL,
+        PRIMARY KEY (fleet, robot, node)
+    ) WITHOUT ROWID""",
+)
+POSE_DIMS = {8 * (d + d * d): d for d in (2, 3)}  # a pose blob's length -> its dimension
 
 
 @dataclass(frozen=True)
@@ -76,14 +85,23 @@ class Store:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.execute("PRAGMA busy_timeout=5000")  # readers in other processes (tests, tools)
-        self._db.executescript(SCHEMA)
-        columns = {row[1] for row in self._db.execute("PRAGMA table_info(poses)")}
-        for name, kind in POSES_ADDED.items():
-            if name not in columns:
-                self._db.execute(f"ALTER TABLE poses ADD COLUMN {name} {kind}")
-        # The store's identity, made once with the data directory: Acks name it, so a robot can tell
-        # this store from another (a fresh data directory, a restored backup) and resend what it lacks.
-        self._db.execute("INSERT OR IGNORE INTO meta VALUES ('store', ?)", (uuid.uuid4().hex,))
+        self._db.execute("BEGIN IMMEDIATE")  # the schema, and a conversion, whole or not at all
+        try:
+            merged = merged_columns(self._db)
+            if merged:
+                self._db.execute("ALTER TABLE poses RENAME TO merged_poses")
+            for table in TABLES:
+                self._db.execute(table)
+            if merged:
+                _convert_merged(self._db, merged)
+            # The store's identity, made once with the data directory: Acks name it, so a robot can tell
+            # this store from another (a fresh data directory, a restored backup) and resend what it lacks.
+            self._db.execute("INSERT OR IGNORE INTO meta VALUES ('store', ?)", (uuid.uuid4().hex,))
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            self._db.close()
+            raise
         self.identity: str = self._db.execute("SELECT value FROM meta WHERE name = 'store'").fetchone()[0]
         self._graphs: dict[tuple[str, str], PoseGraph] = {}  # held pose graphs, as committed, decoded once
 
@@ -118,30 +136,20 @@ class Store:
     def put_scan(self, msg: ScanMessage, raw: bytes) -> bool:
         return self.put_scans([(msg, raw)])[0]
 
-    def put_poses(self, update: PoseGraphUpdate, raw: bytes) -> bool:
-        """Apply `update` node by node to the robot's held pose graph; False if it changes nothing
-        (every node it lists, and its anchor, set by a newer revision, or a resent part)."""
+    def put_poses(self, update: PoseGraphUpdate) -> bool:
+        """Apply `update` node by node to the robot's held pose graph and write what it took; False
+        if it changes nothing (every node it lists, and its anchor, set by a newer revision, or a
+        resent part)."""
         key = (update.fleet, update.robot)
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 graph = self._held_graph(*key) or PoseGraph()
-                if not graph.apply(update).changed:
+                applied, taken = graph.take(update)
+                if not applied.changed:
                     self._db.execute("ROLLBACK")
                     return False
-                as_sent = graph.is_exactly(update)  # a robot's first update, or one listing its whole graph
-                self._db.execute(
-                    "INSERT OR REPLACE INTO poses (fleet, robot, revision, received, raw, node_revisions, "
-                    "anchor_revision) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        *key,
-                        graph.revision,
-                        time.time(),
-                        bytes(raw) if as_sent else encode(graph.as_update(*key)),
-                        None if as_sent else graph.node_revisions(),
-                        graph.anchor_revision if graph.anchor is not None else None,
-                    ),
-                )
+                _write_graph(self._db, *key, graph, taken, time.time())
                 self._db.execute("COMMIT")
                 self._graphs[key] = graph
             except BaseException:
@@ -155,30 +163,44 @@ class Store:
         """The robot's pose graph as committed (caller holds the lock)."""
         key = (fleet, robot)
         if key not in self._graphs:
-            row = self._db.execute(
-                "SELECT raw, node_revisions, anchor_revision FROM poses WHERE fleet = ? AND robot = ?", key
-            ).fetchone()
-            if row is None:
+            graph = read_graph(self._db, fleet, robot)
+            if graph is None:
                 return None
-            self._graphs[key] = _graph(*row)
+            self._graphs[key] = graph
         return self._graphs[key]
 
     # -- reads ---------------------------------------------------------------------------------
     def load(self, fleet: str) -> Iterator[Stored]:
-        """Everything a restart replays into a FleetMap: scans by (robot, node), then pose graphs."""
+        """Everything a restart replays into a FleetMap: each robot's pose graph revision by revision
+        (applied in order, they give a map the per-node revisions too), then scans by (robot, node).
+
+        Poses first: a FleetMap gives a scan the correction it holds for it as the scan lands, while
+        a correction applied after its scans re-poses each of them once per revision. Scans are read
+        SCAN_CHUNK at a time, the lock held only while reading, each decoded as it is yielded.
+        """
         with self._lock:
-            scans = self._db.execute(
-                "SELECT raw, size FROM scans WHERE fleet = ? ORDER BY robot, node", (fleet,)
-            ).fetchall()
-            graphs = self._db.execute(
-                "SELECT robot, raw, node_revisions, anchor_revision FROM poses WHERE fleet = ? ORDER BY robot", (fleet,)
-            ).fetchall()
-        for raw, size in scans:
-            yield Stored(decode(raw, expect=ScanMessage), size)
-        for robot, *row in graphs:
-            # Revision by revision: applied in order, they give a map the per-node revisions too.
-            for update in _graph(*row).by_revision(fleet, robot):
+            robots = [
+                robot
+                for (robot,) in self._db.execute("SELECT robot FROM poses WHERE fleet = ? ORDER BY robot", (fleet,))
+            ]
+        for robot in robots:
+            with self._lock:
+                pieces = self._held_graph(fleet, robot).by_revision(fleet, robot)
+            for update in pieces:
                 yield Stored(update, 0)
+        after = ("", -1)  # (robot, node) of the last scan read; robot ids are never empty
+        while True:
+            with self._lock:
+                rows = self._db.execute(
+                    "SELECT robot, node, raw, size FROM scans WHERE fleet = ? AND (robot, node) > (?, ?) "
+                    "ORDER BY robot, node LIMIT ?",
+                    (fleet, *after, SCAN_CHUNK),
+                ).fetchall()
+            for _, _, raw, size in rows:
+                yield Stored(decode(raw, expect=ScanMessage), size)
+            if len(rows) < SCAN_CHUNK:
+                return
+            after = rows[-1][:2]
 
     def scan_count(self, fleet: str, robot: str | None = None) -> int:
         query, args = "SELECT COUNT(*) FROM scans WHERE fleet = ?", [fleet]
@@ -190,9 +212,10 @@ class Store:
     def inventory(self, fleet: str, robot: str) -> StoreInventory:
         """What this store holds of `robot`: its node ids and the newest pose-graph revision applied."""
         with self._lock:
-            graph = self._held_graph(fleet, robot)
-        revision = None if graph is None else graph.revision
-        return StoreInventory.of(fleet, robot, self.identity, self.nodes(fleet, robot), revision)
+            row = self._db.execute(
+                "SELECT revision FROM poses WHERE fleet = ? AND robot = ?", (fleet, robot)
+            ).fetchone()
+        return StoreInventory.of(fleet, robot, self.identity, self.nodes(fleet, robot), row and row[0])
 
     def nodes(self, fleet: str, robot: str) -> set[int]:
         with self._lock:
@@ -213,7 +236,82 @@ class Store:
             return None if graph is None else graph.as_update(fleet, robot)
 
 
-def _graph(raw: bytes, node_revisions: bytes | None, anchor_revision: int | None) -> PoseGraph:
-    """A `poses` row's graph. A merged graph may outgrow the wire's size cap; the store wrote it, so allow its size."""
-    merged = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))
-    return PoseGraph.from_stored(merged, node_revisions, anchor_revision)
+# -- pose graphs as rows ---------------------------------------------------------------------------
+def pose_blob(pose: Pose) -> bytes:
+    """A pose as kept: t, then R row by row, float64 little-endian (the pose exactly as held)."""
+    return np.concatenate([pose.t, pose.R.ravel()]).astype("<f8", copy=False).tobytes()
+
+
+def poses_of_blobs(blobs: Sequence[bytes], field: str) -> list[Pose]:
+    """pose_blob's poses, decoded at once; one dimension for all. ValueError naming `field` if a
+    blob is not a pose."""
+    if not blobs:
+        return []
+    width = len(blobs[0])
+    dim = POSE_DIMS.get(width)
+    if dim is None or any(len(blob) != width for blob in blobs):
+        lengths = sorted({len(blob) for blob in blobs})
+        raise ValueError(f"{field}: pose blobs of {lengths} bytes; a pose is {sorted(POSE_DIMS)} bytes, one for all")
+    values = np.frombuffer(b"".join(blobs), dtype="<f8").astype(np.float64).reshape(len(blobs), dim + dim * dim)
+    try:
+        return poses_from_arrays(values[:, dim:].reshape(-1, dim, dim), values[:, :dim])
+    except ValueError as error:
+        raise ValueError(f"{field}: {error}") from None
+
+
+def read_graph(db: sqlite3.Connection, fleet: str, robot: str) -> PoseGraph | None:
+    """The robot's pose graph from its rows (two queries, its poses decoded at once); None if it has none."""
+    head = db.execute(
+        "SELECT revision, anchor, anchor_revision FROM poses WHERE fleet = ? AND robot = ?", (fleet, robot)
+    ).fetchone()
+    if head is None:
+        return None
+    revision, anchor, anchor_revision = head
+    rows = db.execute(
+        "SELECT node, revision, pose FROM node_poses WHERE fleet = ? AND robot = ? ORDER BY node", (fleet, robot)
+    ).fetchall()
+    nodes, revisions, blobs = zip(*rows) if rows else ((), (), ())
+    poses = poses_of_blobs(blobs, f"node_poses.pose of {fleet}/{robot}")
+    anchor_pose = None if anchor is None else poses_of_blobs([anchor], f"poses.anchor of {fleet}/{robot}")[0]
+    if poses and anchor_pose is not None and anchor_pose.dim != poses[0].dim:
+        raise ValueError(f"poses.anchor of {fleet}/{robot}: {anchor_pose.dim}D, its nodes {poses[0].dim}D")
+    return PoseGraph.from_rows(
+        revision, nodes, revisions, poses, anchor_pose, -1 if anchor_revision is None else anchor_revision
+    )
+
+
+def _write_graph(
+    db: sqlite3.Connection, fleet: str, robot: str, graph: PoseGraph, nodes: Iterable[int], received: float
+) -> None:
+    """The rows of `nodes` of `graph`, and the robot's row (its revision and anchor)."""
+    db.executemany(
+        "INSERT OR REPLACE INTO node_poses VALUES (?, ?, ?, ?, ?)",
+        ((fleet, robot, node, graph.poses[node][0], pose_blob(graph.poses[node][1])) for node in nodes),
+    )
+    anchor = None if graph.anchor is None else pose_blob(graph.anchor)
+    db.execute(
+        "INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?, ?)",
+        (fleet, robot, graph.revision, received, anchor, None if anchor is None else graph.anchor_revision),
+    )
+
+
+# -- stores of the first two schemas: one merged PoseGraphUpdate per robot -------------------------
+def merged_columns(db: sqlite3.Connection) -> set[str]:
+    """The columns of a `poses` table of merged graphs (it has `raw`); empty for any other store."""
+    columns = {row[1] for row in db.execute("PRAGMA table_info(poses)")}
+    return columns if "raw" in columns else set()
+
+
+def _convert_merged(db: sqlite3.Connection, columns: set[str]) -> None:
+    """Rows of `merged_poses` (the old `poses`) into `poses` and `node_poses`; then drop it. A first-
+    schema row (no per-node revisions) has every node and the anchor at its revision."""
+    per_node = "node_revisions, anchor_revision" if "node_revisions" in columns else "NULL, NULL"
+    rows = db.execute(f"SELECT fleet, robot, received, raw, {per_node} FROM merged_poses").fetchall()
+    for fleet, robot, received, raw, node_revisions, anchor_revision in rows:
+        try:  # a merged graph may outgrow the wire's size cap; the store wrote it, so allow its size
+            merged = decode(raw, expect=PoseGraphUpdate, max_bytes=max(len(raw), 1))
+            graph = PoseGraph.from_merged(merged, node_revisions, anchor_revision)
+        except ValueError as error:  # the whole conversion is rolled back: the old store stays as it was
+            raise ValueError(f"poses of {fleet}/{robot}: {error}") from None
+        _write_graph(db, fleet, robot, graph, graph.poses, received)
+    db.execute("DROP TABLE merged_poses")

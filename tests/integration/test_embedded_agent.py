@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from gmm_core import Pose
-from protocol import PoseGraphUpdate, decode
 from services.agent.agent import Agent
 from services.agent.config import AgentConfig
 from services.config import GmmapConfig
 from services.datasets import read_scans
 from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
+from services.map_server.store import read_graph
 from support.net import free_port
 from support.processes import store_db, stored_nodes
 
@@ -43,8 +43,7 @@ def test_the_example_publishes_keyframes_and_their_corrections(procs, data_dir, 
     assert 0 < len(kept) < len(scans)
     assert stored_nodes(data, "embedded") == set(range(len(kept)))  # numbered 0, 1, ... as added
     with store_db(data) as db:
-        (raw,) = db.execute("SELECT raw FROM poses WHERE robot = 'embedded'").fetchone()
-    update = decode(raw, expect=PoseGraphUpdate)
+        update = read_graph(db, "default", "embedded").as_update("default", "embedded")
     assert [node for node, _ in update.poses] == list(range(len(kept)))
     for (_, pose), scan in zip(update.poses, kept):
         assert np.allclose(pose.t, scan.pose.t, atol=1e-5)  # the corrected poses, not odometry

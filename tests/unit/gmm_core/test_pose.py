@@ -1,11 +1,13 @@
-"""Poses: interpolation between two poses (2D and 3D) against closed forms and scipy."""
+"""Poses: interpolation between two poses (2D and 3D) against closed forms and scipy; many poses
+built at once against Pose one by one."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from gmm_core.pose import Pose, slerp
+from gmm_core.pose import Pose, poses_from_arrays, slerp
 
 
 def test_slerp_closed_form_and_short_way():
@@ -32,3 +34,33 @@ def test_between_follows_the_line_and_the_shorter_arc():
         want = Slerp([0, 1], r)(f).as_matrix()
         np.testing.assert_allclose(a.between(b, f).R, want, atol=1e-9)
         np.testing.assert_allclose(a.between(b, f).t, a.t + f * (b.t - a.t))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_poses_from_arrays_builds_and_refuses_what_pose_does(dim):
+    rng = np.random.default_rng(dim)
+    for _ in range(20):
+        n = int(rng.integers(0, 50))
+        R = Rotation.random(n, random_state=rng).as_matrix() if n else np.zeros((0, 3, 3))
+        R = R[:, :dim, :dim] if dim == 3 else np.array([Pose.from_xytheta(0, 0, a).R for a in rng.uniform(-4, 4, n)])
+        t = rng.normal(size=(n, dim)) * 100
+        R, t = R.reshape(n, dim, dim), t.reshape(n, dim)
+        bad = int(rng.integers(n)) if n and rng.random() < 0.5 else None
+        if bad is not None:  # a reflection, a scaled rotation or a NaN: refused by both, with one message
+            how = rng.integers(3)
+            if how == 0:
+                R[bad, 0] *= -1
+            elif how == 1:
+                R[bad] *= 1.001
+            else:
+                t[bad, -1] = np.nan
+        try:
+            one_by_one = [Pose(r, v) for r, v in zip(R, t)]
+        except ValueError as error:
+            with pytest.raises(ValueError, match=str(error)):
+                poses_from_arrays(R, t)
+            continue
+        many = poses_from_arrays(R, t)
+        assert [(p.R.tobytes(), p.t.tobytes()) for p in many] == [(p.R.tobytes(), p.t.tobytes()) for p in one_by_one]
+    with pytest.raises(ValueError, match="must be"):
+        poses_from_arrays(np.zeros((2, 3, 3)), np.zeros((2, 2)))

@@ -46,16 +46,27 @@ def test_store_keeps_each_scan_once_and_survives_reopening(tmp_path, model):
     assert list(store.load("other")) == []
 
 
+def test_load_reads_scans_chunk_by_chunk_after_the_pose_graphs(tmp_path, model, monkeypatch):
+    monkeypatch.setattr("services.map_server.store.SCAN_CHUNK", 2)  # 7 scans: chunks of 2, 2, 2, 1
+    store = Store(tmp_path)
+    keys = [("b", 0), ("a", 5), ("a", 1), ("b", 3), ("a", 2), ("c", 0), ("b", 1)]
+    assert all(store.put_scans([(scan(model, r, n), encode(scan(model, r, n))) for r, n in keys]))
+    assert store.put_poses(poses("b", 1, [(3, 1.0)]))
+    loaded = [(r.message.robot, getattr(r.message, "node", None), r.size) for r in store.load("default")]
+    size = len(encode(scan(model)))
+    assert loaded == [("b", None, 0)] + [(r, n, size) for r, n in sorted(keys)]
+
+
 def test_store_merges_pose_graphs_node_by_node(tmp_path):
     store = Store(tmp_path)
     anchor = Pose.from_xytheta(10, 0, 0)
     update = poses("r", 2, [(0, 1.0), (1, 1.0)], anchor)
-    assert store.put_poses(update, encode(update))
-    assert store.put_poses(poses("r", 1, [(0, 5.0)]), b"") is False  # node 0 was set by revision 2
+    assert store.put_poses(update)
+    assert store.put_poses(poses("r", 1, [(0, 5.0)])) is False  # node 0 was set by revision 2
     older = poses("r", 1, [(0, 5.0), (4, 5.0)], Pose.identity(2))  # node 4: no newer revision listed it
-    assert store.put_poses(older, encode(older))
+    assert store.put_poses(older)
     newer = poses("r", 3, [(1, 2.0), (2, 2.0)])  # lists only the nodes it moves, no anchor
-    assert store.put_poses(newer, encode(newer))
+    assert store.put_poses(newer)
     held = store.pose_graph("default", "r")
     assert held.revision == 3
     assert {n: p.t[0] for n, p in held.poses} == {0: 1.0, 1: 2.0, 2: 2.0, 4: 5.0}

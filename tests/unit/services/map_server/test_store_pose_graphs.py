@@ -1,8 +1,7 @@
 """Pose graphs in the durable store: per-node revisions survive a restart, so the restarted server
-judges a late update as the live one would have; a store written before them is migrated; ingest
-acknowledges an update that changed nothing."""
+judges a late update as the live one would have; ingest acknowledges an update that changed nothing.
+(Stores of older schemas: test_store_migration.py.)"""
 
-import sqlite3
 import time
 
 import numpy as np
@@ -13,7 +12,7 @@ from protocol import Ack, ScanMessage, decode, encode, poses_key
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
-from services.map_server.store import DB_NAME, Store
+from services.map_server.store import Store
 from support.pose_graphs import FLEET, ReferenceGraph, pose, random_history, update
 
 
@@ -39,7 +38,7 @@ def graph_of(fleet_map: FleetMap):
 
 
 def put(store: Store, message) -> bool:
-    return store.put_poses(message, encode(message))
+    return store.put_poses(message)
 
 
 def same_server(a: ServerState, b: ServerState) -> None:
@@ -74,35 +73,6 @@ def test_a_restarted_server_judges_late_updates_as_the_live_one(tmp_path, model)
         same_server(live, replayed(tmp_path / str(seed)))
 
 
-V1_POSES = """
-CREATE TABLE poses (
-    fleet TEXT NOT NULL, robot TEXT NOT NULL, revision INTEGER NOT NULL,
-    received REAL NOT NULL, raw BLOB NOT NULL,
-    PRIMARY KEY (fleet, robot)
-) WITHOUT ROWID;
-"""
-
-
-def test_a_store_written_before_per_node_revisions_is_migrated(tmp_path):
-    merged = update(5, [(0, 1.0), (1, 1.0)], anchor=0.5)  # v1 kept one merged graph at its newest revision
-    with sqlite3.connect(tmp_path / DB_NAME) as db:
-        db.executescript(V1_POSES)
-        db.execute("INSERT INTO poses VALUES (?, ?, ?, ?, ?)", (FLEET, "r", 5, time.time(), encode(merged)))
-    db.close()
-    store = Store(tmp_path)
-    assert [(r.message.revision, len(r.message.poses), r.message.anchor is not None) for r in store.load(FLEET)] == [
-        (5, 2, True)
-    ]
-    assert not put(store, update(4, [(0, 0.0)], anchor=0.0))  # every node and the anchor are at revision 5
-    assert put(store, update(4, [(7, 0.0)]))  # a node v1 never had
-    assert put(store, update(5, [(1, 1.5)]))  # a later part of revision 5
-    store.close()
-    store = Store(tmp_path)  # migrated once: reopening finds the columns
-    pieces = [(r.message.revision, [(n, p.t[0]) for n, p in r.message.poses]) for r in store.load(FLEET)]
-    assert pieces == [(4, [(7, 0.0)]), (5, [(0, 1.0), (1, 1.5)])]
-    assert store.pose_graph(FLEET, "r").anchor.t[0] == 0.5
-
-
 def test_ingest_acknowledges_an_update_that_changes_nothing(tmp_path):
     state = ServerState(FLEET, FleetMap(FLEET), Store(tmp_path))
     acks = []
@@ -116,3 +86,17 @@ def test_ingest_acknowledges_an_update_that_changes_nothing(tmp_path):
     ingest.stop()
     assert [(a.kind, a.ids) for a in acks] == [("poses", (2,)), ("poses", (1,)), ("poses", (2,))]
     assert graph_of(state.fleet_map)[:2] == ({0: (2, 1.0)}, None)
+
+
+def test_an_update_writes_the_rows_of_the_nodes_it_takes_and_its_robots_row(tmp_path):
+    store = Store(tmp_path)
+    assert put(store, update(1, [(n, 0.0) for n in range(1000)], anchor=0.0))
+    written = store._db.total_changes
+    assert put(store, update(3, [(5, 1.0), (6, 0.0), (7, 0.5)]))  # node 6: an equal pose, a newer revision
+    assert store._db.total_changes - written == 3 + 1
+    written = store._db.total_changes
+    assert put(store, update(2, [(5, 0.0), (8, 1.5)]))  # node 5 is revision 3's: only node 8's row
+    assert store._db.total_changes - written == 1 + 1
+    store.close()
+    held = Store(tmp_path).pose_graph(FLEET, "r")
+    assert [(n, p.t[0]) for n, p in held.poses[4:10]] == [(4, 0.0), (5, 1.0), (6, 0.0), (7, 0.5), (8, 1.5), (9, 0.0)]
