@@ -63,6 +63,7 @@ class Stored:
 
     message: ScanMessage | PoseGraphUpdate
     size: int  # of a scan, as received; 0 for a pose graph's revision (rebuilt, never sent as such)
+    raw: bytes | None = None  # a scan's bytes as received (the map holds them, not the decoded model)
 
 
 class Store:
@@ -197,7 +198,7 @@ class Store:
                     (fleet, *after, SCAN_CHUNK),
                 ).fetchall()
             for _, _, raw, size in rows:
-                yield Stored(decode(raw, expect=ScanMessage), size)
+                yield Stored(decode(raw, expect=ScanMessage), size, raw)
             if len(rows) < SCAN_CHUNK:
                 return
             after = rows[-1][:2]
