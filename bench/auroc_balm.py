@@ -26,18 +26,15 @@ OctoMap's voxels. GMM bytes: each scan's ScanMessage in `q`, from a second fit o
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np
-import octomap
+from octomap_compare import aligned_bbox, machine_line, octomap_prob, octomap_tree, timed
 
-from gmm_core import Grid
 from gmm_core.metrics import grid_auroc
 from protocol import encode
 from services.config import load_config
@@ -51,52 +48,12 @@ MARGIN = 20.0  # m around the trajectory in x and y
 Z_BAND = (-3.0, 9.0)  # m, world z
 
 
-def machine_line() -> str:
-    cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    return f"{cpu}, {os.cpu_count()} cores, load average {load}; {time.strftime('%Y-%m-%d')}"
-
-
 def evaluation_bbox(scans: list[RangeScan]) -> list[float]:
     """x-y: the sensor positions' extent +- MARGIN; z: Z_BAND; corners outward to multiples of RESOLUTION."""
     origins = np.array([s.pose.t for s in scans])
-    lo = np.floor((np.append(origins[:, :2].min(axis=0) - MARGIN, Z_BAND[0])) / RESOLUTION) * RESOLUTION
-    hi = np.ceil((np.append(origins[:, :2].max(axis=0) + MARGIN, Z_BAND[1])) / RESOLUTION) * RESOLUTION
-    return [float(v) for v in np.round(np.concatenate([lo, hi]), 6)]
-
-
-def observed_centres(grid: Grid, observed: np.ndarray) -> np.ndarray:
-    """(n, 3) x, y, z centres of the cells where `observed` (array order [iz, iy, ix]) is True."""
-    iz, iy, ix = np.nonzero(observed)
-    return grid.origin + (np.stack([ix, iy, iz], axis=1) + 0.5) * grid.resolution
-
-
-def octomap_tree(scans: list[RangeScan], maxrange: float) -> octomap.OcTree:
-    tree = octomap.OcTree(RESOLUTION)
-    for s in scans:
-        cloud = np.ascontiguousarray(s.pose.apply(s.hits), dtype=np.float64)
-        tree.insertPointCloud(cloud, np.ascontiguousarray(s.pose.t, dtype=np.float64), maxrange=maxrange)
-    return tree
-
-
-def octomap_prob(tree: octomap.OcTree, grid: Grid, observed: np.ndarray) -> np.ndarray:
-    """OctoMap's occupancy at the centres of the observed cells, 0.5 elsewhere (those cells are not scored)."""
-    values = np.full(int(observed.sum()), 0.5)
-    # The binding answers one point per call; the cells the ground truth never saw need no answer.
-    for i, centre in enumerate(observed_centres(grid, observed)):
-        try:
-            values[i] = tree.search(centre).getOccupancy()
-        except octomap.NullPointerException:  # a voxel OctoMap never saw: unknown
-            pass
-    prob = np.full(grid.array_shape, 0.5)
-    prob[observed] = values
-    return prob
-
-
-def timed(f, *args, **kwargs):
-    start = time.perf_counter()
-    out = f(*args, **kwargs)
-    return out, time.perf_counter() - start
+    lo = np.append(origins[:, :2].min(axis=0) - MARGIN, Z_BAND[0])
+    hi = np.append(origins[:, :2].max(axis=0) + MARGIN, Z_BAND[1])
+    return aligned_bbox(lo, hi, RESOLUTION)
 
 
 def main() -> None:
@@ -145,10 +102,10 @@ def main() -> None:
             raise RuntimeError("the second fit gave other models than the replay's; bytes would not be its bytes")
         q_bytes = np.mean([len(encode(scan_message(m, s), "q")) for m, s in zip(models, scans)])
         xyz_bytes = 12.0 * np.mean([len(s.hits) for s in scans])  # float32 x, y, z per point
-        full, t_insert = timed(octomap_tree, scans, -1.0)
+        full, t_insert = timed(octomap_tree, scans, RESOLUTION, -1.0)
         full_prob, t_query = timed(octomap_prob, full, grid, observed)
         del full
-        cut = octomap_tree(scans, config.max_range)
+        cut = octomap_tree(scans, RESOLUTION, config.max_range)
         a_cut = grid_auroc(octomap_prob(cut, grid, observed), *truth)
         del cut
         rows.append(

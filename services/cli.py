@@ -119,7 +119,10 @@ def cmd_inspect(args) -> int:
     dim = scans[0].pose.dim if scans else 2
     config = settings.fit.for_dimension(dim)
     start, bars = _progress_bars()
+    # fit_s: wall seconds of fitting alone (numba threads as NUMBA_NUM_THREADS sets them).
+    fit_start = time.perf_counter()
     models = fit_scans(scans, config, start("fit", len(scans)))
+    fit_s = time.perf_counter() - fit_start
     for bar in bars:
         bar.close()
     sizes = [len(encode(scan_message(m, s), args.encoding)) for m, s in zip(models, scans)]
@@ -132,6 +135,7 @@ def cmd_inspect(args) -> int:
         "dimension": dim,
         "encoding": args.encoding,
         "components": components,
+        "fit_s": fit_s,
         "bytes": sum(sizes),
         "raw_bytes": sum(raw),
         "bytes_per_component": sum(sizes) / max(components, 1),

@@ -1,0 +1,226 @@
+"""3D lidar scans fitted at sensor rate (issue 15): fit time beside OctoMap, bytes, AUROC, and the
+scikit-learn guard; the 2D Intel fit time beside it.
+
+Per 3D data set (BALM OS0 sequence, the three Kurt3D scans, the OctoMap scan.dat), every scan, no
+keyframe policy; points beyond MAX_RANGE (60 m) dropped and no-return beams left out, so that the
+GMM and OctoMap see the same points (OctoMap: defaults, maxrange 60 m, 0.2 m):
+- time: per scan, `fit_scan` with the 3D defaults (`load_config()`, resolved for 3D) and OctoMap's
+  `insertPointCloud` of the same scan into the map of the scans before it, alternately, in one
+  run, one thread (NUMBA_NUM_THREADS=1); wall seconds (what `gmmap inspect` reports as fit_s) and
+  the thread's CPU seconds (less moved by other load on the machine). Numba compile excluded
+  (one fit before timing).
+- bytes: each scan's ScanMessage in `q` against float32 x, y, z per point.
+- AUROC at RESOLUTION against the raw counting grid of all points of all scans (cells it never
+  observed left out), at keep fractions 1.0 / 0.3 / 0.1 (seeded per scan as `--keep-fraction`):
+  GMM `replay(method="mc")` with the defaults through the `q` codec, OctoMap (maxrange 60 m)
+  read at the cell centres, the raw grid of the kept points.
+- guard: on the first scan, a seeded subsample of `--sklearn-points` points (0: all), K as the
+  defaults choose it for them; mean log-likelihood per point of `fit_scan`'s mixture and of
+  scikit-learn's GaussianMixture(K, full, reg_covar 1e-4, random_state 0) on the same points.
+2D: `fit_scan` of every Intel scan (after 20 warm-up scans), wall and CPU seconds in total.
+
+    NUMBA_NUM_THREADS=1 .venv/bin/python bench/lidar.py [--sets balm kurt3d octomap] [--no-auroc]
+"""
+
+from __future__ import annotations
+
+import os
+
+for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[var] = "1"  # one core: numba, and scikit-learn's BLAS / OpenMP
+
+import argparse
+import sys
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np
+import octomap
+from octomap_compare import aligned_bbox, insert_scan, machine_line, octomap_prob, octomap_tree
+
+from gmm_core import FitConfig, fit_scan
+from gmm_core.metrics import grid_auroc
+from protocol import encode
+from services.config import load_config
+from services.datasets import RangeScan, read_scans
+from services.replay import replay, scan_message
+
+DATA = ROOT.parent / "shared" / "data"
+RESOLUTION = 0.2
+MAX_RANGE = 60.0  # m, OctoMap's maxrange; the GMM gets the same points
+SETS = {
+    "balm": (DATA / "3d" / "balm-os0", {"fmt": "pcd", "poses": DATA / "3d" / "balm-os0" / "poses.txt"}),
+    "kurt3d": (DATA / "3d" / "kurt3d", {"fmt": "kurt3d"}),
+    "octomap": (DATA / "3d" / "octomap" / "scan.dat.bz2", {"origin": (0, 0, 0.49)}),
+}
+
+
+def within_range(scan: RangeScan) -> RangeScan:
+    """The scan's hits within MAX_RANGE of the sensor, without no-return beams (OctoMap has none)."""
+    hits = scan.hits[np.linalg.norm(scan.hits, axis=1) <= MAX_RANGE]
+    return replace(scan, hits=hits, no_return=np.zeros((0, 3)))
+
+
+def read(name: str, fraction: float = 1.0) -> list[RangeScan]:
+    path, options = SETS[name]
+    return [within_range(s) for s in read_scans(path, keep_fraction=fraction, seed=0, **options)]
+
+
+def clock():
+    return time.perf_counter(), time.thread_time()
+
+
+def since(start) -> tuple[float, float]:
+    wall, cpu = clock()
+    return wall - start[0], cpu - start[1]
+
+
+def timing(scans: list[RangeScan], config: FitConfig) -> dict:
+    """Per scan (wall s, CPU s) of fit_scan and of OctoMap's insertion, alternately; q bytes and xyz bytes."""
+    fit_scan(scans[0].hits[:1000], scans[0].no_return, config)  # compile (or load the numba cache)
+    tree = octomap.OcTree(RESOLUTION)
+    fit, insert, q_bytes, components = [], [], [], []
+    for s in scans:
+        start = clock()
+        model = fit_scan(s.hits, s.no_return, config)
+        fit.append(since(start))
+        start = clock()
+        insert_scan(tree, s, MAX_RANGE)
+        insert.append(since(start))
+        q_bytes.append(len(encode(scan_message(model, s), "q")))
+        components.append(model.n_components)
+    return dict(
+        fit=np.array(fit),
+        insert=np.array(insert),
+        q_bytes=np.array(q_bytes),
+        xyz_bytes=np.array([12 * len(s.hits) for s in scans]),
+        points=np.array([len(s.hits) for s in scans]),
+        components=np.array(components),
+    )
+
+
+def evaluation_bbox(scans: list[RangeScan]) -> list[float]:
+    """Every hit and sensor origin, +- 0.5 m, on multiples of RESOLUTION."""
+    points = np.concatenate([s.pose.apply(s.hits) for s in scans] + [np.array([s.pose.t for s in scans])])
+    return aligned_bbox(points.min(axis=0) - 0.5, points.max(axis=0) + 0.5, RESOLUTION)
+
+
+def aurocs(name: str, config, settings, fractions) -> list[tuple]:
+    every = read(name)
+    bbox = evaluation_bbox(every)
+    truth_map = replay(every, resolution=RESOLUTION, bbox=bbox, method="raw", config=config)
+    grid, truth = truth_map.grid, (truth_map.hits, truth_map.misses)
+    observed = (truth[0] + truth[1]) > 0
+    rows = []
+    for fraction in fractions:
+        scans = read(name, fraction)
+        gmm = replay(
+            scans,
+            resolution=RESOLUTION,
+            bbox=bbox,
+            method="mc",
+            config=config,
+            seed=0,
+            reconstruction=settings.reconstruction,
+            encoding="q",
+        )
+        raw = replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config)
+        tree = octomap_tree(scans, RESOLUTION, MAX_RANGE)
+        a_oct = grid_auroc(octomap_prob(tree, grid, observed), *truth)
+        del tree
+        rows.append((fraction, grid_auroc(gmm.prob, *truth), a_oct, grid_auroc(raw.prob, *truth), observed.sum()))
+    return rows
+
+
+def guard(name: str, config: FitConfig, n_points: int) -> tuple:
+    """(points, K, ours, scikit-learn, ours s, scikit-learn s): mean log-likelihood per point on one scan's points."""
+    from sklearn.mixture import GaussianMixture
+
+    hits = read(name)[0].hits
+    if n_points and n_points < len(hits):
+        hits = hits[np.random.default_rng(0).choice(len(hits), n_points, replace=False)]
+    start = clock()
+    ours = fit_scan(hits, np.zeros((0, 3)), config).occupied
+    ours_s = since(start)[0]
+    k = config.n_components(hits)
+    gm = GaussianMixture(k, covariance_type="full", reg_covar=config.reg_covar, random_state=0)
+    start = clock()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gm.fit(hits)
+    sk_s = since(start)[0]
+    ll = np.concatenate([ours.log_density(hits[i : i + 2000]) for i in range(0, len(hits), 2000)]).mean()
+    return len(hits), k, ll, gm.score(hits), ours_s, sk_s
+
+
+def intel_2d() -> tuple[int, float, float]:
+    scans = list(read_scans(DATA / "carmen" / "intel-corrected.log.gz"))
+    for s in scans[:20]:
+        fit_scan(s.hits, s.no_return)
+    start = clock()
+    for s in scans:
+        fit_scan(s.hits, s.no_return)
+    return (len(scans), *since(start))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
+    parser.add_argument("--fractions", type=float, nargs="+", default=[1.0, 0.3, 0.1])
+    parser.add_argument("--sklearn-points", type=int, default=10_000, help="guard subsample (0: every point)")
+    parser.add_argument("--no-auroc", action="store_true", help="time, bytes and the guard only")
+    args = parser.parse_args()
+    settings = load_config()
+    config = settings.fit.for_dimension(3)
+    print(machine_line())
+    print(f"fit {config}; reconstruction {settings.reconstruction}\n")
+    times, quality, guards = {}, {}, {}
+    for name in args.sets:
+        times[name] = timing(read(name), config)
+        guards[name] = guard(name, config, args.sklearn_points)
+        if not args.no_auroc:
+            quality[name] = aurocs(name, config, settings, args.fractions)
+        print(f"{name}: done", flush=True)
+    n2d, wall2d, cpu2d = intel_2d()
+
+    print(
+        "\n| data | scans | points/scan | components/scan | fit ms/scan wall (CPU) | OctoMap insert ms/scan wall "
+        "(CPU) | OctoMap / fit, wall (CPU), worst scan | bytes/scan q | raw xyz bytes/scan | q / raw |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, t in times.items():
+        fit, ins = t["fit"], t["insert"]
+        ratio = ins / fit
+        print(
+            f"| {name} | {len(fit)} | {t['points'].mean():,.0f} | {t['components'].mean():.0f} "
+            f"| {1e3 * fit[:, 0].mean():.1f} ({1e3 * fit[:, 1].mean():.1f}) "
+            f"| {1e3 * ins[:, 0].mean():.0f} ({1e3 * ins[:, 1].mean():.0f}) "
+            f"| {ratio[:, 0].min():.0f}x ({ratio[:, 1].min():.0f}x) | {t['q_bytes'].mean():,.0f} "
+            f"| {t['xyz_bytes'].mean():,.0f} | {100 * t['q_bytes'].sum() / t['xyz_bytes'].sum():.2f} % |"
+        )
+    if quality:
+        print("\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | cells scored |")
+        print("|---|---|---|---|---|---|")
+        for name, rows in quality.items():
+            for f, a_gmm, a_oct, a_raw, cells in rows:
+                print(f"| {name} | {f:.0%} | {a_gmm:.4f} | {a_oct:.4f} | {a_raw:.4f} | {cells:,} |")
+    print(
+        "\n| data, first scan | points | K | log-lik/point ours | scikit-learn | ours - scikit-learn "
+        "| ours s | scikit-learn s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for name, (n, k, ll, sk, ours_s, sk_s) in guards.items():
+        print(
+            f"| {name} | {n:,} | {k} | {ll:.4f} | {sk:.4f} | {ll - sk:+.4f} ({100 * (ll - sk) / abs(sk):+.1f} %) "
+            f"| {ours_s:.3f} | {sk_s:.1f} |"
+        )
+    print(f"\n2D Intel: fit_scan of all {n2d} scans {wall2d:.2f} s wall, {cpu2d:.2f} s CPU")
+
+
+if __name__ == "__main__":
+    main()
