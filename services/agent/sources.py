@@ -77,7 +77,12 @@ class RelaxingCorrections:
     """A simulated robot's pose-graph optimiser: each loop closure moves every node it knows part
     of the way from its estimate to the truth, half of what is left, so the newest nodes move most
     and older ones less and less, as an optimiser spreads a closure's correction; the last closure
-    (the mission's end) converges to the truth."""
+    (the mission's end) converges to the truth.
+
+    A node left 2^-HALVINGS of its offset (micrometres) is settled: later closures, but the last,
+    leave it out, so a closure costs the nodes of its last HALVINGS closures, not the whole mission."""
+
+    HALVINGS = 20
 
     def __init__(self) -> None:
         self._joined: dict[int, int] = {}  # node -> the closure that first placed it
@@ -89,9 +94,9 @@ class RelaxingCorrections:
         for k, n in nodes.items():
             if n.corrected is None:
                 continue
-            joined = self._joined.setdefault(k, self._closures)
-            left = 0.0 if final else 0.5 ** (self._closures - joined + 1)
-            poses[k] = n.corrected.between(n.estimate, left)
+            halvings = self._closures - self._joined.setdefault(k, self._closures) + 1
+            if final or halvings <= self.HALVINGS:
+                poses[k] = n.corrected.between(n.estimate, 0.0 if final else 0.5**halvings)
         return poses
 
 

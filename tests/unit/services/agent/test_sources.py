@@ -27,6 +27,16 @@ def test_a_simulated_optimiser_moves_newer_nodes_more_and_converges_at_the_end()
     assert all(np.allclose(final[k].t, nodes[k].corrected.t) for k in nodes)
 
 
+def test_settled_nodes_are_left_out_until_the_last_closure():
+    back_end = RelaxingCorrections()
+    nodes = {0: node(0, 1.0)}
+    for _ in range(RelaxingCorrections.HALVINGS):
+        assert list(back_end.closure(nodes, final=False)) == [0]  # 2^-20 of its offset left at the 20th
+    nodes[1] = node(1, 1.0)
+    assert list(back_end.closure(nodes, final=False)) == [1]
+    assert sorted(back_end.closure(nodes, final=True)) == [0, 1]
+
+
 def test_a_log_back_end_gives_the_corrected_poses_as_they_are():
     nodes = {k: node(k, 0.3) for k in range(3)}
     poses = FixedCorrections().closure(nodes, final=False)
