@@ -270,14 +270,10 @@ def fit_mixture_voxels(
     Deterministic: no seed. Fewer components come back when fewer groups can be cut than asked
     (voxels are never cut: the voxels must be much smaller than the components).
     """
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] not in (2, 3):
-        raise ValueError(f"fit_mixture_voxels: points must be (n, 2|3), got {points.shape}")
+    points = em.checked_points(points, "fit_mixture_voxels")
     n, d = points.shape
     if n == 0:
         return Mixture.empty(d)
-    if not np.isfinite(points).all():
-        raise ValueError("fit_mixture_voxels: points contain NaN or inf")
     shift = points.mean(axis=0)
     sums = _voxel_statistics(points - shift, float(voxel_size))
     means, scatter = _means_and_scatter(sums)
