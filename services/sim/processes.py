@@ -24,9 +24,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the parent dies, even by SIGKILL (Linux
-    PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no server tracing on."""
+def die_with_parent() -> None:
+    """In a child (before exec, or first thing in a spawned process): SIGTERM when the parent dies,
+    even by SIGKILL (Linux PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no
+    server tracing on and no tile client asking a server that is gone."""
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -83,7 +84,7 @@ class Processes:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
-                preexec_fn=_die_with_parent,
+                preexec_fn=die_with_parent,
             )
         self.running[name] = proc
         return proc

@@ -37,7 +37,7 @@ from services.http_client import HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
-from services.sim.processes import Processes, free_port, http_security_args
+from services.sim.processes import Processes, die_with_parent, free_port, http_security_args
 from services.sim.record import RunRecord, Snapshot, evaluation_grid, slabs
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
@@ -86,6 +86,7 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
     """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set, as a viewer
     does: a shed request (503) waits its Retry-After (at most SHED_WAIT_S) before the next. Puts
     ((asked, latency, X-Map-Age) of the answered requests, failures by kind) on `results`."""
+    die_with_parent()
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
