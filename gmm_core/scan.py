@@ -90,14 +90,13 @@ class FitConfig:
 
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
-        changes: dict[str, float | int] = {}
-        if self.component_size is None and dim == 3:
-            changes["component_size"] = DENSE_3D_COMPONENT_SIZE
-        if self.voxel_size is None:
-            changes["voxel_size"] = DENSE_3D_VOXEL_SIZE if dim == 3 else 0.0
-        if self.voxel_max_iter is None:
-            changes["voxel_max_iter"] = DENSE_3D_VOXEL_MAX_ITER
-        return replace(self, **changes) if changes else self
+        component_size = DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size
+        voxel_size = (DENSE_3D_VOXEL_SIZE if dim == 3 else 0.0) if self.voxel_size is None else self.voxel_size
+        voxel_max_iter = DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter
+        resolved = (component_size, voxel_size, voxel_max_iter)
+        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter):
+            return self
+        return replace(self, component_size=component_size, voxel_size=voxel_size, voxel_max_iter=voxel_max_iter)
 
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:
