@@ -117,11 +117,15 @@ def test_kill_9_during_ingest_loses_no_acknowledged_scan(procs, session_to, inte
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     server = procs.server("server-1", data, zport, hport)
     agents = [procs.agent(r, zport, data_dir, "--rate", "150", "--resend", "0.5", "--timeout", "60") for r in HALVES]
-    # Of each robot (one may start seconds after the other, its outbox not yet there to read).
+    # Of each robot (one may start seconds after the other, its outbox not yet there to read), and
+    # an Ack to each: a batch is committed before its Acks go out, so stored scans alone may have none.
     wait_for(
-        lambda: min(len(stored_nodes(data, r)) for r in HALVES) >= 100,
+        lambda: (
+            min(len(stored_nodes(data, r)) for r in HALVES) >= 100
+            and all(acked_nodes(tmp_path / f"outbox-{r}.db") for r in HALVES)
+        ),
         60,
-        "100 stored scans of each robot",
+        "100 stored scans of each robot and an Ack to each",
         interval=0.02,
     )
     server.send_signal(signal.SIGKILL)

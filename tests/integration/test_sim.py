@@ -168,7 +168,7 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
     assert report["bytes_on_wire"] < report["raw_scan_bytes"] == 60 * 360 * 4
     assert report["grid_delta_bytes"] > 0 and report["components"] > 0
     assert report["auroc"] > 0.8 and report["auroc_before_correction"] > 0.5
-    assert 0 <= report["ingest_lag_p99_s"] < 2 and report["tile_requests"] > 0 and report["tile_errors"] == 0
+    assert 0 <= report["ingest_lag_p99_s"] < 5 and report["tile_requests"] > 0 and report["tile_errors"] == 0
     assert 0 < report["tile_latency_p99_s"] < 5
     assert set(report["per_robot"]) == {"r0", "r1"} and report["realtime_factor"] > 0
     assert 20 < report["server_rss_start_mb"] <= report["server_rss_max_mb"] < 4096  # a Python server's RSS
