@@ -79,14 +79,21 @@ class Ingest:
             self._note_waiting(key)
             self._queue.put((key, payload))
 
-    def _note_waiting(self, key: str) -> None:
+    @staticmethod
+    def _scan_of(key: str) -> tuple[str, int] | None:
+        """(robot, node) of a scan key; None for any other key (a bad one is rejected, and counted,
+        when its turn comes)."""
         try:
             _, robot, kind, node = parse_key(key)
         except ProtocolError:
-            return  # rejected, and counted, when its turn comes
-        if kind == "scan":
+            return None
+        return (robot, node) if kind == "scan" else None
+
+    def _note_waiting(self, key: str) -> None:
+        scan = self._scan_of(key)
+        if scan is not None:
             with self._waiting_lock:
-                self._waiting[robot].setdefault(node, time.monotonic())
+                self._waiting[scan[0]].setdefault(scan[1], time.monotonic())
 
     def _done_waiting(self, robot: str, nodes: list[int]) -> None:
         with self._waiting_lock:
@@ -157,7 +164,7 @@ class Ingest:
                 self._done_waiting_key(key)
             elif isinstance(message, ScanMessage):
                 scans.append((message, payload))
-            elif message is not None:
+            else:
                 updates.append((message, payload))
         if scans:
             self._ingest_scans(scans)
@@ -165,12 +172,9 @@ class Ingest:
             self._ingest_poses(update, payload)
 
     def _done_waiting_key(self, key: str) -> None:
-        try:
-            _, robot, kind, node = parse_key(key)
-        except ProtocolError:
-            return
-        if kind == "scan":
-            self._done_waiting(robot, [node])
+        scan = self._scan_of(key)
+        if scan is not None:
+            self._done_waiting(scan[0], [scan[1]])
 
     def _validate(self, key: str, payload: bytes) -> ScanMessage | PoseGraphUpdate | None:
         """The message, or None after counting why it was rejected."""
