@@ -61,6 +61,7 @@ class FleetMap:
     # -- ingest ---------------------------------------------------------------------------
     def close(self) -> None:
         """Stop tracing (a server that is stopping); queries after this fail."""
+        self._tiles.close()
         self._tracers.close()
 
     def ingest_first(self):

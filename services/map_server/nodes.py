@@ -82,6 +82,7 @@ class Node:
     seed: int  # of its samples: scan_seed(robot, node)
     local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
     local_hi: np.ndarray
+    reach: float  # how far from the node frame's origin its rays reach at most (the box's far corner), metres
     pose_changes: int = 0  # bumped whenever a correction sets `map_pose`
     posed: Posed | None = None  # where it stood when last asked (Robot.posed), shared by the tiles counting it
 
@@ -267,6 +268,7 @@ class NodeStore:
                 scan_seed(msg.robot, msg.node),
                 lo,
                 hi,
+                float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)))),
             )
             robot.nodes[msg.node] = node
             robot.components += msg.model.n_components
