@@ -20,7 +20,7 @@ def _determinant(R: np.ndarray) -> float:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)  # a server holds a pose per node for a whole shift
 class Pose:
     """A rigid transform x_world = R @ x_local + t, in 2D or 3D."""
 
