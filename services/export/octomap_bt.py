@@ -1,0 +1,128 @@
+"""OctoMap binary trees (`.bt`), the files OctoMap's `OcTree::readBinary` loads.
+
+The layout (OctoMap's AbstractOccupancyOcTree.cpp and OccupancyOcTreeBase.hxx, readBinaryNode):
+the header lines of `HEADER`, where `size` counts every node of the tree (readBinary refuses a
+file whose count differs), then the inner nodes depth first from the root, each as two bytes of
+2 bits per child: children 0-3 in the first byte, 4-7 in the second, child i at bits 2i and
+2i + 1 (from the least significant): 00 absent (unknown), 01 free leaf, 10 occupied leaf, 11 an
+inner node, whose own two bytes follow in depth-first order. The tree has 16 levels; a voxel's
+key is floor(coordinate / resolution) + 2^15 on each axis, and child i of a node at depth d
+(the root at 0) holds the keys whose bit 15 - d is i & 1 in x, (i >> 1) & 1 in y, (i >> 2) & 1
+in z. So voxels lie on multiples of the resolution from the world origin.
+
+A `.bt` holds classes, not probabilities: readBinary gives every occupied leaf the tree's upper
+clamping log-odds and every free leaf the lower one (3.5 and -2 by default), as OctoMap's own
+writeBinary, which first turns a tree to its maximum likelihood, does. Eight leaves of one class
+under one parent merge into it (OctoMap's prune, never at the root), so these are the bytes
+OctoMap's writeBinary writes for the same leaves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gmm_core import Grid
+from gmm_core.occupancy import OCCUPIED, UNKNOWN, classify
+
+TREE_DEPTH = 16
+KEY_OFFSET = 1 << (TREE_DEPTH - 1)  # OctoMap's tree_max_val: the key of the voxel at [0, resolution)
+MAGIC = "# Octomap OcTree binary file"  # the first line readBinary checks
+HEADER = MAGIC + "\n# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
+FREE_LEAF, OCCUPIED_LEAF, INNER = 1, 2, 3  # a child's 2 bits
+ALL_FREE = sum(FREE_LEAF << (2 * i) for i in range(8))  # 0x5555: eight free leaves, pruned to one
+ALL_OCCUPIED = sum(OCCUPIED_LEAF << (2 * i) for i in range(8))  # 0xAAAA
+NOT_3D = "bt: OctoMap trees are 3D and this map is {dim}D; export it as pgm or ply"
+
+
+def voxel_keys(grid: Grid) -> np.ndarray:
+    """(nz, ny, nx, 3) OctoMap keys (x, y, z) of the voxel holding each cell's centre (OctoMap's
+    coordToKey). On a grid whose min corner is a multiple of the resolution each cell is a voxel;
+    otherwise each cell moves by under half a cell onto OctoMap's lattice (`lattice_offset`)."""
+    if grid.dim != 3:
+        raise ValueError("format: " + NOT_3D.format(dim=grid.dim))
+    problem = reach_problem(grid)
+    if problem:
+        raise ValueError(f"bbox: {problem}")
+    kz, ky, kx = np.meshgrid(*(_axis_keys(grid, axis) for axis in (2, 1, 0)), indexing="ij")
+    return np.stack([kx, ky, kz], axis=-1)
+
+
+def _axis_keys(grid: Grid, axis: int) -> np.ndarray:
+    centre = grid.origin[axis] / grid.resolution + np.arange(grid.shape[axis]) + 0.5  # in cells
+    return np.floor(centre).astype(np.int64) + KEY_OFFSET
+
+
+def reach_problem(grid: Grid) -> str | None:
+    """Why a 3D grid does not fit in an OctoMap tree (keys of 16 bits), or None when it does."""
+    for axis in range(3):
+        first = np.floor(grid.origin[axis] / grid.resolution + 0.5) + KEY_OFFSET
+        last = first + grid.shape[axis] - 1
+        if first < 0 or last >= 2 * KEY_OFFSET:
+            return (
+                f"an OctoMap tree at {grid.resolution} m reaches +-{KEY_OFFSET * grid.resolution:g} m from the "
+                f"origin; this map spans {'xyz'[axis]} {float(grid.origin[axis]):g} .. {float(grid.upper[axis]):g} m"
+            )
+    return None
+
+
+def lattice_offset(grid: Grid) -> np.ndarray:
+    """(3,) metres each cell centre lies from the centre of its OctoMap voxel (0 on OctoMap's lattice)."""
+    centre = grid.origin / grid.resolution + 0.5
+    return (centre - (np.floor(centre) + 0.5)) * grid.resolution
+
+
+def _morton(keys: np.ndarray) -> np.ndarray:
+    """Interleaved key bits, x lowest: ordering by it walks the tree depth first, children 0 to 7."""
+    code = np.zeros(len(keys), dtype=np.int64)
+    for bit in range(TREE_DEPTH):
+        for axis in range(3):
+            code |= ((keys[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def tree_data(keys: np.ndarray, occupied: np.ndarray) -> tuple[int, bytes]:
+    """The node count and the data bytes of the tree whose leaves are voxels `keys` (n, 3) at the
+    deepest level, occupied where `occupied` and free elsewhere; every other voxel unknown."""
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    if len(keys) == 0:
+        return 0, b""
+    state = np.where(np.asarray(occupied, dtype=bool).ravel(), OCCUPIED_LEAF, FREE_LEAF).astype(np.int64)
+    depths, prefixes, words = [], [], []  # the inner nodes
+    nodes = 1  # the root
+    for depth in range(TREE_DEPTH, 0, -1):  # the nodes at `depth` join their parents at depth - 1
+        parent = keys >> 1
+        child = (keys[:, 0] & 1) | (keys[:, 1] & 1) << 1 | (keys[:, 2] & 1) << 2
+        packed = parent[:, 0] | parent[:, 1] << 16 | parent[:, 2] << 32
+        order = np.argsort(packed, kind="stable")
+        _, first = np.unique(packed[order], return_index=True)
+        word = np.add.reduceat(state[order] << (2 * child[order]), first)  # each child once: + is |
+        parent = parent[order[first]]
+        pruned = (word == ALL_FREE) | (word == ALL_OCCUPIED) if depth > 1 else np.zeros(len(word), bool)
+        inner = ~pruned
+        depths.append(np.full(int(inner.sum()), depth - 1))
+        prefixes.append(parent[inner])
+        words.append(word[inner])
+        nodes += int(np.diff(np.append(first, len(order)))[inner].sum())
+        keys = parent
+        state = np.where(pruned, np.where(word == ALL_OCCUPIED, OCCUPIED_LEAF, FREE_LEAF), INNER)
+    depth = np.concatenate(depths)
+    prefix = np.concatenate(prefixes)
+    word = np.concatenate(words)
+    # Depth first: a node's voxel keys padded with zero bits sort it before its descendants (which
+    # share that code only along child 0, deeper) and after every earlier sibling's subtree.
+    padded = _morton(prefix << (TREE_DEPTH - depth)[:, None])
+    word = word[np.lexsort((depth, padded))]
+    data = np.empty(2 * len(word), dtype=np.uint8)
+    data[0::2] = word & 0xFF
+    data[1::2] = word >> 8
+    return nodes, data.tobytes()
+
+
+def bt_bytes(prob: np.ndarray, grid: Grid, variance: float) -> bytes:
+    """The `.bt` of a 3D probability map [iz, iy, ix]: cells occupied or free by Eq. 12 at sigma^2 =
+    `variance` become leaves of that class; cells in the dead band, and p = 0.5, stay unknown."""
+    keys = voxel_keys(grid)
+    classes = classify(prob, variance)
+    known = classes != UNKNOWN
+    size, data = tree_data(keys[known], classes[known] == OCCUPIED)
+    return f"{HEADER}id OcTree\nsize {size}\nres {grid.resolution!r}\ndata\n".encode("ascii") + data

@@ -1,0 +1,108 @@
+"""The .bt writer against OctoMap itself (octomap-python): its own writeBinary for the same leaves,
+and its readBinary on what we write."""
+
+import numpy as np
+import pytest
+
+from gmm_core import Grid
+from gmm_core.occupancy import FREE, OCCUPIED, classify
+from services.export.octomap_bt import HEADER, KEY_OFFSET, bt_bytes, lattice_offset, tree_data, voxel_keys
+
+octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
+
+
+def random_leaves(rng, n_scattered: int) -> dict[tuple[int, int, int], bool]:
+    """Voxel keys (relative to the origin's voxel) -> occupied: scattered ones, and solid blocks of one
+    class aligned on 2, 4 and 8 voxels, which OctoMap prunes one, two and three levels up."""
+    leaves = {tuple(k): bool(o) for k, o in zip(rng.integers(-12, 12, (n_scattered, 3)), rng.random(n_scattered) < 0.3)}
+    for size in (2, 4, 8):
+        for corner in rng.integers(-3, 3, (2, 3)) * 8:
+            occupied = bool(rng.random() < 0.5)
+            for offset in np.ndindex(size, size, size):
+                leaves[tuple(int(c) for c in corner + offset)] = occupied
+    return leaves
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_same_bytes_as_octomaps_own_writer(seed):
+    rng = np.random.default_rng(seed)
+    resolution = [0.1, 0.05, 0.25][seed % 3]
+    leaves = random_leaves(rng, int(rng.integers(1, 300)))
+    reference = octomap.OcTree(resolution)
+    for key, occupied in leaves.items():
+        reference.updateNode((np.array(key) + 0.5) * resolution, occupied)
+    keys = np.array(list(leaves)) + KEY_OFFSET
+    size, data = tree_data(keys, np.array(list(leaves.values())))
+    ours = f"{HEADER}id OcTree\nsize {size}\nres {resolution!r}\ndata\n".encode() + data
+    assert ours == reference.writeBinary()  # toMaxLikelihood, prune, then the same depth-first bytes
+
+
+def load(body: bytes, tmp_path):
+    path = tmp_path / "map.bt"
+    path.write_bytes(body)
+    tree = octomap.OcTree(1.0)
+    assert tree.readBinary(str(path).encode())  # OctoMap's own reader: checks the header and the node count
+    return tree
+
+
+def node_at(tree, point):
+    node = tree.search(point)
+    try:
+        return node.getLogOdds()
+    except octomap.NullPointerException:  # no node there: unknown
+        return None
+
+
+def test_readbinary_loads_every_cell_with_its_class(tmp_path):
+    rng = np.random.default_rng(7)
+    grid = Grid([-1.2, 0.4, -0.6], 0.2, (9, 7, 5))  # on OctoMap's lattice: every cell is one voxel
+    prob = rng.random(grid.array_shape).astype(np.float32)
+    prob[1:3, 2:4, 4:6] = 0.05  # a block of free cells
+    prob.ravel()[rng.random(prob.size) < 0.1] = 0.5  # unseen
+    variance = 0.21
+    tree = load(bt_bytes(prob, grid, variance), tmp_path)
+    assert tree.getResolution() == 0.2
+    classes = classify(prob, variance)
+    occupied_log, free_log = tree.getClampingThresMaxLog(), tree.getClampingThresMinLog()
+    seen = {OCCUPIED: 0, FREE: 0}
+    for centre, cls in zip(grid.cell_centers(), classes.ravel()):
+        log_odds = node_at(tree, centre)
+        if cls == OCCUPIED:
+            assert log_odds == pytest.approx(occupied_log)
+        elif cls == FREE:
+            assert log_odds == pytest.approx(free_log)
+        else:
+            assert log_odds is None
+        seen[cls] = seen.get(cls, 0) + 1
+    assert seen[OCCUPIED] > 20 and seen[FREE] > 50
+    # Every leaf volume is a known cell: the tree holds nothing beyond them.
+    volume = sum(leaf.getSize() ** 3 for leaf in tree.begin_leafs())
+    assert volume == pytest.approx((classes != -1).sum() * 0.2**3)
+
+
+def test_off_lattice_cells_land_in_the_voxel_holding_their_centre(tmp_path):
+    grid = Grid([0.03, -0.13, 1.0], 0.1, (4, 3, 2))
+    prob = np.full(grid.array_shape, 0.9, dtype=np.float32)
+    np.testing.assert_allclose(lattice_offset(grid), [0.03, -0.03, 0.0], atol=1e-12)
+    keys = voxel_keys(grid)
+    centres = grid.cell_centers()
+    np.testing.assert_array_equal(keys.reshape(-1, 3), np.floor(centres / 0.1).astype(int) + KEY_OFFSET)
+    tree = load(bt_bytes(prob, grid, 0.21), tmp_path)
+    for centre in centres:
+        assert node_at(tree, centre - lattice_offset(grid)) == pytest.approx(tree.getClampingThresMaxLog())
+    assert sum(1 for _ in tree.begin_leafs()) <= grid.n_cells
+
+
+def test_a_map_with_nothing_known_is_an_empty_tree(tmp_path):
+    grid = Grid([0.0, 0.0, 0.0], 0.1, (3, 3, 3))
+    body = bt_bytes(np.full(grid.array_shape, 0.5, np.float32), grid, 0.21)
+    assert body.endswith(b"size 0\nres 0.1\ndata\n")
+    assert load(body, tmp_path).size() == 0
+
+
+def test_2d_maps_and_maps_beyond_the_tree_are_refused():
+    with pytest.raises(ValueError, match="format: bt: OctoMap trees are 3D and this map is 2D"):
+        bt_bytes(np.zeros((2, 2), np.float32), Grid([0.0, 0.0], 0.1, (2, 2)), 0.21)
+    far = Grid([0.0, 0.0, 3276.7], 0.1, (1, 1, 2))  # keys reach 2^16 at +3276.8 m
+    with pytest.raises(ValueError, match=r"bbox: an OctoMap tree at 0.1 m reaches \+-3276.8 m"):
+        bt_bytes(np.ones((2, 1, 1), np.float32), far, 0.21)
