@@ -118,9 +118,11 @@ def map_dimension(client: HttpClient) -> tuple[int, np.ndarray, np.ndarray]:
     return int(extent["dim"]), np.asarray(extent["lo"], float), np.asarray(extent["hi"], float)
 
 
-def fetch(client: HttpClient, lo: np.ndarray, hi: np.ndarray, resolution: float) -> ExportMap:
+def fetch(
+    client: HttpClient, lo: np.ndarray, hi: np.ndarray, resolution: float, max_cells: int = MAX_CELLS
+) -> ExportMap:
     """The server's probabilities over Grid.from_bbox(lo, hi, resolution), fetched as npy in slabs
-    along the slowest array axis (z in 3D, y in 2D) of at most MAX_CELLS cells each, the API's limit."""
+    along the slowest array axis (z in 3D, y in 2D) of at most `max_cells` cells each (the API's limit)."""
     grid = Grid.from_bbox(lo, hi, resolution)
     if grid.n_cells > MAX_EXPORT_CELLS:
         raise ValueError(
@@ -129,9 +131,9 @@ def fetch(client: HttpClient, lo: np.ndarray, hi: np.ndarray, resolution: float)
         )
     axis = grid.dim - 1  # x, y[, z]: the last is the slowest in array order
     per_layer = grid.n_cells // grid.shape[axis]
-    if per_layer > MAX_CELLS:
-        raise ValueError(f"bbox: one layer holds {per_layer:,} cells, over the server's {MAX_CELLS:,} per request")
-    step = MAX_CELLS // per_layer
+    if per_layer > max_cells:
+        raise ValueError(f"bbox: one layer holds {per_layer:,} cells, over the server's {max_cells:,} per request")
+    step = max_cells // per_layer
     slabs = []
     for start in range(0, grid.shape[axis], step):
         stop = min(start + step, grid.shape[axis])

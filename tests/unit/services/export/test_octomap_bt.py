@@ -7,6 +7,7 @@ import pytest
 from gmm_core import Grid
 from gmm_core.occupancy import FREE, OCCUPIED, classify
 from services.export.octomap_bt import HEADER, KEY_OFFSET, bt_bytes, lattice_offset, tree_data, voxel_keys
+from support.octomap_trees import node_log_odds
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
 
@@ -45,14 +46,6 @@ def load(body: bytes, tmp_path):
     return tree
 
 
-def node_at(tree, point):
-    node = tree.search(point)
-    try:
-        return node.getLogOdds()
-    except octomap.NullPointerException:  # no node there: unknown
-        return None
-
-
 def test_readbinary_loads_every_cell_with_its_class(tmp_path):
     rng = np.random.default_rng(7)
     grid = Grid([-1.2, 0.4, -0.6], 0.2, (9, 7, 5))  # on OctoMap's lattice: every cell is one voxel
@@ -66,7 +59,7 @@ def test_readbinary_loads_every_cell_with_its_class(tmp_path):
     occupied_log, free_log = tree.getClampingThresMaxLog(), tree.getClampingThresMinLog()
     seen = {OCCUPIED: 0, FREE: 0}
     for centre, cls in zip(grid.cell_centers(), classes.ravel()):
-        log_odds = node_at(tree, centre)
+        log_odds = node_log_odds(tree, centre)
         if cls == OCCUPIED:
             assert log_odds == pytest.approx(occupied_log)
         elif cls == FREE:
@@ -89,7 +82,7 @@ def test_off_lattice_cells_land_in_the_voxel_holding_their_centre(tmp_path):
     np.testing.assert_array_equal(keys.reshape(-1, 3), np.floor(centres / 0.1).astype(int) + KEY_OFFSET)
     tree = load(bt_bytes(prob, grid, 0.21), tmp_path)
     for centre in centres:
-        assert node_at(tree, centre - lattice_offset(grid)) == pytest.approx(tree.getClampingThresMaxLog())
+        assert node_log_odds(tree, centre - lattice_offset(grid)) == pytest.approx(tree.getClampingThresMaxLog())
     assert sum(1 for _ in tree.begin_leafs()) <= grid.n_cells
 
 
