@@ -34,17 +34,12 @@ ALL_OCCUPIED = sum(OCCUPIED_LEAF << (2 * i) for i in range(8))  # 0xAAAA
 NOT_3D = "bt: OctoMap trees are 3D and this map is {dim}D; export it as pgm or ply"
 
 
-def voxel_keys(grid: Grid) -> np.ndarray:
-    """(nz, ny, nx, 3) OctoMap keys (x, y, z) of the voxel holding each cell's centre (OctoMap's
-    coordToKey). On a grid whose min corner is a multiple of the resolution each cell is a voxel;
-    otherwise each cell moves by under half a cell onto OctoMap's lattice (`lattice_offset`)."""
-    if grid.dim != 3:
-        raise ValueError("format: " + NOT_3D.format(dim=grid.dim))
-    problem = reach_problem(grid)
-    if problem:
-        raise ValueError(f"bbox: {problem}")
-    kz, ky, kx = np.meshgrid(*(_axis_keys(grid, axis) for axis in (2, 1, 0)), indexing="ij")
-    return np.stack([kx, ky, kz], axis=-1)
+def cell_keys(grid: Grid, index: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(n, 3) OctoMap keys (x, y, z) of the voxels holding the centres of the cells at array `index`
+    ((iz, iy, ix), as np.nonzero gives it): OctoMap's coordToKey. On a grid whose min corner is a
+    multiple of the resolution each cell is a voxel; otherwise each moves by under half a cell onto
+    OctoMap's lattice (`lattice_offset`)."""
+    return np.stack([_axis_keys(grid, axis)[index[2 - axis]] for axis in range(3)], axis=1)
 
 
 def _axis_keys(grid: Grid, axis: int) -> np.ndarray:
@@ -121,8 +116,12 @@ def tree_data(keys: np.ndarray, occupied: np.ndarray) -> tuple[int, bytes]:
 def bt_bytes(prob: np.ndarray, grid: Grid, variance: float) -> bytes:
     """The `.bt` of a 3D probability map [iz, iy, ix]: cells occupied or free by Eq. 12 at sigma^2 =
     `variance` become leaves of that class; cells in the dead band, and p = 0.5, stay unknown."""
-    keys = voxel_keys(grid)
+    if grid.dim != 3:
+        raise ValueError("format: " + NOT_3D.format(dim=grid.dim))
+    problem = reach_problem(grid)
+    if problem:
+        raise ValueError(f"bbox: {problem}")
     classes = classify(prob, variance)
-    known = classes != UNKNOWN
-    size, data = tree_data(keys[known], classes[known] == OCCUPIED)
+    known = np.nonzero(classes != UNKNOWN)
+    size, data = tree_data(cell_keys(grid, known), classes[known] == OCCUPIED)
     return f"{HEADER}id OcTree\nsize {size}\nres {grid.resolution!r}\ndata\n".encode("ascii") + data

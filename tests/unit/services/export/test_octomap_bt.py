@@ -6,7 +6,7 @@ import pytest
 
 from gmm_core import Grid
 from gmm_core.occupancy import FREE, OCCUPIED, classify
-from services.export.octomap_bt import HEADER, KEY_OFFSET, bt_bytes, lattice_offset, tree_data, voxel_keys
+from services.export.octomap_bt import HEADER, KEY_OFFSET, bt_bytes, cell_keys, lattice_offset, tree_data
 from support.octomap_trees import node_log_odds
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
@@ -77,9 +77,9 @@ def test_off_lattice_cells_land_in_the_voxel_holding_their_centre(tmp_path):
     grid = Grid([0.03, -0.13, 1.0], 0.1, (4, 3, 2))
     prob = np.full(grid.array_shape, 0.9, dtype=np.float32)
     np.testing.assert_allclose(lattice_offset(grid), [0.03, -0.03, 0.0], atol=1e-12)
-    keys = voxel_keys(grid)
+    keys = cell_keys(grid, tuple(i.ravel() for i in np.indices(grid.array_shape)))
     centres = grid.cell_centers()
-    np.testing.assert_array_equal(keys.reshape(-1, 3), np.floor(centres / 0.1).astype(int) + KEY_OFFSET)
+    np.testing.assert_array_equal(keys, np.floor(centres / 0.1).astype(int) + KEY_OFFSET)
     tree = load(bt_bytes(prob, grid, 0.21), tmp_path)
     for centre in centres:
         assert node_log_odds(tree, centre - lattice_offset(grid)) == pytest.approx(tree.getClampingThresMaxLog())

@@ -9,29 +9,12 @@ import yaml
 from PIL import Image
 
 from gmm_core import Grid
-from gmm_core.occupancy import FREE, OCCUPIED, classify
+from gmm_core.occupancy import classify
 from services.export import output_paths, write_export
 from services.export.pgm import map_yaml
 from services.export.sources import ExportMap
 from services.render import top_down_classes
-
-
-def map_server_load(yaml_path):
-    """nav_msgs/OccupancyGrid values (100, 0, -1; row 0 at the min y) and the YAML, as map_server's
-    trinary loader makes them: occ = (255 - v) / 255 with negate 0, occupied above occupied_thresh,
-    free below free_thresh."""
-    meta = yaml.safe_load(yaml_path.read_text())
-    image = Image.open(yaml_path.parent / meta["image"])
-    assert image.format == "PPM" and image.mode == "L"  # PIL's name for the PGM family (P5 here)
-    occ = (255 - np.asarray(image, dtype=np.float64)) / 255.0
-    if meta["negate"]:
-        occ = 1.0 - occ
-    data = np.where(occ > meta["occupied_thresh"], 100, np.where(occ < meta["free_thresh"], 0, -1))
-    return data[::-1], meta  # the loader puts image row 0 at the top: the largest y
-
-
-def expected_values(classes):
-    return np.select([classes == OCCUPIED, classes == FREE], [100, 0], -1)
+from support.ros_maps import grid_values, map_server_load
 
 
 @pytest.mark.parametrize("variance", [0.21, 0.06, 0.25])
@@ -46,7 +29,7 @@ def test_2d_map_round_trip(tmp_path, variance):
     data, meta = map_server_load(paths[1])
     assert meta["image"] == "office.pgm" and meta["mode"] == "trinary" and meta["negate"] == 0
     assert meta["resolution"] == 0.05 and meta["origin"] == [-3.25, 10.5, 0.0]
-    np.testing.assert_array_equal(data, expected_values(classify(prob, variance)))
+    np.testing.assert_array_equal(data, grid_values(classify(prob, variance)))
     assert (data[0, :5] == -1).all()
     shades = set(np.unique(np.asarray(Image.open(paths[0]))).tolist())
     assert shades == {0, 205, 254}  # map_saver's trinary shades
@@ -67,7 +50,7 @@ def test_3d_map_is_seen_from_above(tmp_path):
     write_export(ExportMap(grid, prob), "pgm", tmp_path / "mine.yaml", 0.21)
     data, meta = map_server_load(tmp_path / "mine.yaml")
     assert meta["origin"] == [1.0, 2.0, 0.0] and data.shape == (5, 6)
-    np.testing.assert_array_equal(data, expected_values(top_down_classes(prob, 0.21)))
+    np.testing.assert_array_equal(data, grid_values(top_down_classes(prob, 0.21)))
 
 
 def test_thresholds_separate_the_three_shades_whatever_the_variance():
