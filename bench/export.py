@@ -1,5 +1,5 @@
 """`gmmap export`'s writers on a real 3D map: the .bt tree beside OctoMap building the same leaves
-(octomap-python's updateNodes, C++, then its own writeBinary), and the PGM and PLY writers.
+(octomap-python's updateNodes, C++, then its own writeBinary), and the .ot, PGM and PLY writers.
 
 The map: the raw counting grid of the three Kurt3D scans (`replay(method="raw")`, no fitting) on a
 box whose corners are multiples of the resolution, so that each cell is one OctoMap voxel and
@@ -24,7 +24,7 @@ from octomap_compare import aligned_bbox, machine_line
 
 from gmm_core.occupancy import FREE, OCCUPIED, classify
 from services.datasets import read_scans
-from services.export.octomap_bt import bt_bytes
+from services.export.octomap_tree import bt_bytes, ot_bytes
 from services.export.pgm import map_classes, pgm_bytes
 from services.export.ply import ply_bytes
 from services.replay import replay
@@ -71,12 +71,14 @@ def main() -> None:
     ours_s, ours = best_of(args.repeat, lambda: bt_bytes(prob, grid, VARIANCE))
     theirs_s, theirs = best_of(args.repeat, lambda: octomap_bt(prob, grid))
     assert ours == theirs, "the .bt differs from OctoMap's own"
+    ot_s, ot = best_of(args.repeat, lambda: ot_bytes(prob, grid, VARIANCE))
     pgm_s, _ = best_of(args.repeat, lambda: pgm_bytes(map_classes(prob, VARIANCE)))
     ply_s, ply = best_of(args.repeat, lambda: ply_bytes(prob, grid, VARIANCE))
     print("| writer | seconds | bytes |")
     print("|---|---|---|")
-    print(f"| .bt, services.export.octomap_bt | {ours_s:.3f} | {len(ours):,} |")
+    print(f"| .bt, services.export.octomap_tree | {ours_s:.3f} | {len(ours):,} |")
     print(f"| .bt, octomap-python updateNodes + writeBinary (same bytes) | {theirs_s:.3f} | {len(theirs):,} |")
+    print(f"| .ot (MAP log-odds, unpruned) | {ot_s:.3f} | {len(ot):,} |")
     print(f"| PGM (top-down classes) | {pgm_s:.3f} | {grid.shape[0] * grid.shape[1]:,} pixels |")
     print(f"| PLY | {ply_s:.3f} | {len(ply):,} |")
     print(f"# ratio OctoMap / ours for the .bt: {theirs_s / ours_s:.2f}")

@@ -469,10 +469,11 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--from", dest="from_npz", metavar="MAP.npz", help="a map written by `gmmap replay --out`")
     p.add_argument(
         "--format",
-        choices=["pgm", "bt", "ply"],
+        choices=["pgm", "bt", "ot", "ply"],
         required=True,
         help="pgm: PATH.pgm + PATH.yaml for ROS map_server and Nav2 (3D: seen from above); bt: OctoMap binary tree "
-        "(3D maps); ply: occupied cell centres with their probability",
+        "(3D maps, classes); ot: OctoMap full tree (3D maps, the MAP log-odds); ply: occupied cell centres with "
+        "their probability",
     )
     p.add_argument(
         "--bbox",
@@ -484,7 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--resolution",
         type=float,
         default=None,
-        help="cell size, m: --url default 0.1 (bt: on OctoMap's voxels); --from: the npz's, which is not resampled",
+        help="cell size, m: --url default 0.1 (bt, ot: on OctoMap's voxels); --from: the npz's, which is not resampled",
     )
     setting(
         p,
@@ -493,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="sigma^2 of Eq. 12: cells are free, occupied or unknown by its dead band",
     )
-    p.add_argument("--out", required=True, metavar="PATH", help="PATH.pgm and PATH.yaml, PATH.bt or PATH.ply")
+    p.add_argument("--out", required=True, metavar="PATH", help="PATH.pgm and PATH.yaml, PATH.bt, PATH.ot or PATH.ply")
     http_client_flags(p)  # --url with TLS and tokens
     config_flag(p)
     p.set_defaults(run=cmd_export)

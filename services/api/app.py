@@ -29,7 +29,7 @@ from starlette.staticfiles import StaticFiles
 
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
-from services.export.octomap_bt import NOT_3D, bt_bytes, reach_problem
+from services.export.octomap_tree import NOT_3D, bt_bytes, ot_bytes, reach_problem
 from services.export.pgm import map_classes, pgm_bytes
 from services.export.ply import ply_bytes
 from services.map_server.tiles import MAX_STALE_S
@@ -59,6 +59,7 @@ class Format(str, Enum):
     msgpack = "msgpack"
     pgm = "pgm"
     bt = "bt"
+    ot = "ot"
     ply = "ply"
 
 
@@ -75,9 +76,10 @@ MEDIA_TYPES = {
     Format.msgpack: "application/msgpack",
     Format.pgm: "image/x-portable-graymap",
     Format.bt: "application/octet-stream",
+    Format.ot: "application/octet-stream",
     Format.ply: "application/octet-stream",
 }
-EXPORTS = {Format.pgm, Format.bt, Format.ply}  # classified by Eq. 12, as `gmmap export` writes them
+EXPORTS = {Format.pgm, Format.bt, Format.ot, Format.ply}  # classified by Eq. 12, as `gmmap export` writes them
 
 
 # Schema constraints are published for clients and API fuzzers; the checks themselves are in
@@ -234,7 +236,8 @@ def create_app(
                 "image seen from above, north up (see `shade`); msgpack: a protocol "
                 "MapReply of the probabilities; pgm: the ROS map_server image of the Eq. 12 classes (occupied 0, "
                 "free 254, unknown 205; its YAML's origin is X-Grid-Origin); bt: an OctoMap binary tree of the "
-                "occupied and free cells (3D maps; each cell in the OctoMap voxel holding its centre); ply: the "
+                "occupied and free cells (3D maps; each cell in the OctoMap voxel holding its centre); ot: the "
+                "same as a full OctoMap tree whose leaves hold the MAP log-odds log(p / (1 - p)); ply: the "
                 "occupied cell centres with their probability. "
                 "X-Map-Age: seconds the state served has been out of date "
                 f"(0: up to date; at most {MAX_STALE_S:g} when a previous state is served under load)",
@@ -258,7 +261,7 @@ def create_app(
             f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells",
             **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION),
         ),
-        format: Format = Query(Format.npy, description="npy, png, msgpack, pgm, bt (3D) or ply"),
+        format: Format = Query(Format.npy, description="npy, png, msgpack, pgm, bt (3D), ot (3D) or ply"),
         robots: str | None = Query(
             None,
             description="comma-separated robot ids; every robot when absent",
@@ -276,7 +279,7 @@ def create_app(
         variance: float = Query(
             default_variance,
             description=(
-                f"png with shade=classes, pgm, bt and ply: sigma^2 of Eq. 12, "
+                f"png with shade=classes, pgm, bt, ot and ply: sigma^2 of Eq. 12, "
                 f"{params.MIN_VARIANCE} to {params.MAX_VARIANCE} "
                 f"(the variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for "
                 f"p <= (1 - sqrt(1 - 4 sigma^2)) / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between "
@@ -292,9 +295,9 @@ def create_app(
         lo, hi = params.bbox(bbox)
         params.check_dimension(len(lo), fmap.dim, "bbox")
         grid = params.grid(lo, hi, res)
-        if format is Format.bt:
+        if format in (Format.bt, Format.ot):
             if grid.dim != 3:
-                raise ApiError("format", NOT_3D.format(dim=grid.dim))
+                raise ApiError("format", NOT_3D.format(fmt=format.value, dim=grid.dim))
             if problem := reach_problem(grid):
                 raise ApiError("bbox", problem)
         selected = who.select(params.robots(robots))  # the reply's key below: per client's robots
@@ -328,6 +331,8 @@ def create_app(
                 body = pgm_bytes(map_classes(prob, sigma2))
             elif format is Format.bt:
                 body = bt_bytes(prob, grid, sigma2)
+            elif format is Format.ot:
+                body = ot_bytes(prob, grid, sigma2)
             elif format is Format.ply:
                 body = ply_bytes(prob, grid, sigma2)
             else:

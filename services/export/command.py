@@ -1,4 +1,4 @@
-"""`gmmap export (--url http://HOST:PORT | --from MAP.npz) --format pgm|bt|ply [--bbox ...]
+"""`gmmap export (--url http://HOST:PORT | --from MAP.npz) --format pgm|bt|ot|ply [--bbox ...]
 [--resolution R] [--variance S2] --out PATH`."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 
 from gmm_core.occupancy import FREE, OCCUPIED, classify
 
-from . import check_dimension, write_export
-from .octomap_bt import lattice_offset
+from . import OCTOMAP_FORMATS, check_dimension, write_export
+from .octomap_tree import lattice_offset
 from .sources import ExportMap, check_bbox, check_resolution, crop, fetch, map_dimension, on_lattice, read_npz
 
 DEFAULT_URL_RESOLUTION = 0.1  # m, for --url without --resolution (the ROS map's default in issue 14)
@@ -38,7 +38,7 @@ def load_map(
     token_file: str | None = None,
     ca_file: str | None = None,
 ) -> ExportMap:
-    """The map to export: fetched from a server at `resolution` (on OctoMap's lattice for bt), or read
+    """The map to export: fetched from a server at `resolution` (on OctoMap's lattice for bt and ot), or read
     from an npz, which is only cropped, never resampled."""
     if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
         raise ValueError(f"resolution: must be a positive number of metres, got {resolution}")
@@ -49,7 +49,7 @@ def load_map(
         if bbox is not None:
             lo, hi = check_bbox(bbox, dim)
         res = resolution if resolution is not None else DEFAULT_URL_RESOLUTION
-        if fmt == "bt":
+        if fmt in OCTOMAP_FORMATS:
             lo, hi = on_lattice(lo, hi, res)
         return fetch(client, lo, hi, res)
     if npz is None:
@@ -68,7 +68,7 @@ def summary(source: ExportMap, fmt: str, variance: float) -> str:
         f"{int((classes == OCCUPIED).sum()):,} occupied, {int((classes == FREE).sum()):,} free "
         f"(Eq. 12 at sigma^2 = {variance!r})"
     )
-    if fmt == "bt" and np.abs(offset := lattice_offset(grid)).max() > 1e-9 * grid.resolution:
+    if fmt in OCTOMAP_FORMATS and np.abs(offset := lattice_offset(grid)).max() > 1e-9 * grid.resolution:
         text += f"; cells moved by {np.round(offset, 6).tolist()} m onto OctoMap's voxels"
     if fmt == "pgm" and grid.dim == 3:
         text += "; the PGM shows it from above"

@@ -18,7 +18,7 @@ from protocol import ScanMessage
 from services.api import create_app
 from services.cli import main
 from services.datasets import read_scans
-from services.export.octomap_bt import bt_bytes
+from services.export.octomap_tree import bt_bytes
 from services.export.pgm import map_classes, pgm_bytes
 from services.export.ply import ply_bytes
 from services.export.sources import fetch, on_lattice
@@ -105,9 +105,9 @@ def test_slabs_under_the_cell_limit_join_seamlessly(server):
     np.testing.assert_array_equal(whole.prob, slabs.prob)
 
 
-def test_bt_pgm_and_ply_of_a_3d_server(server_3d, kurt3d_map, tmp_path):
+def test_every_format_of_a_3d_server(server_3d, kurt3d_map, tmp_path):
     out = tmp_path / "kurt3d"
-    for fmt in ("bt", "pgm", "ply"):
+    for fmt in ("bt", "ot", "pgm", "ply"):
         assert main(["export", "--url", server_3d.url, "--format", fmt, "--resolution", "0.25", "--out", str(out)]) == 0
     extent = json.loads(get(f"{server_3d.url}/v1/map/extent")[2])
     lo, hi = on_lattice(np.array(extent["lo"]), np.array(extent["hi"]), 0.25)  # bt asks for OctoMap's voxels
@@ -124,6 +124,11 @@ def test_bt_pgm_and_ply_of_a_3d_server(server_3d, kurt3d_map, tmp_path):
     box = ",".join(repr(float(v)) for v in (*lo, *hi))
     status, headers, served = get(f"{server_3d.url}/v1/occupancy?bbox={box}&resolution=0.25&format=bt")
     assert status == 200 and served == body
+    full = octomap.OcTree.read(str(tmp_path / "kurt3d.ot").encode())  # OctoMap's read: the MAP log-odds
+    for centre, p, cls in zip(grid.cell_centers(), prob.ravel(), classes.ravel()):
+        assert node_log_odds(full, centre) == (None if cls == UNKNOWN else pytest.approx(np.log(p / (1 - p)), rel=1e-5))
+    status, headers, served = get(f"{server_3d.url}/v1/occupancy?bbox={box}&resolution=0.25&format=ot")
+    assert status == 200 and served == (tmp_path / "kurt3d.ot").read_bytes()
     whole = Grid.from_bbox(extent["lo"], extent["hi"], 0.25)  # pgm and ply: the extent as it is
     prob = kurt3d_map.occupancy(whole)
     assert (tmp_path / "kurt3d.pgm").read_bytes() == pgm_bytes(map_classes(prob, 0.21))
@@ -142,8 +147,12 @@ def test_refusals(server, server_3d, tmp_path, capsys):
     assert main(["export", "--url", server.url, "--format", "pgm", "--resolution", "0.001", "--out", out]) == 2
     assert "cells at 0.001 m; an export holds at most 128,000,000" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
-    status, _, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format=bt")
-    assert status == 422 and json.loads(body)["field"] == "format"
+    for fmt in ("bt", "ot"):
+        status, _, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format={fmt}")
+        assert status == 422 and json.loads(body) == {
+            "detail": f"format: {fmt}: OctoMap trees are 3D and this map is 2D; export it as pgm or ply",
+            "field": "format",
+        }
     status, _, body = get(f"{server_3d.url}/v1/occupancy?bbox=0,0,0,1,1,10000&resolution=0.3&format=bt")
     assert status == 422 and json.loads(body) == {
         "detail": "bbox: an OctoMap tree at 0.3 m reaches +-9830.4 m from the origin; this map spans z 0 .. 10000.2 m",

@@ -9,7 +9,7 @@ from plyfile import PlyData
 from gmm_core import Grid
 from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, classify
 from services.cli import main
-from services.export.octomap_bt import lattice_offset
+from services.export.octomap_tree import lattice_offset
 from support.octomap_trees import node_log_odds
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
@@ -81,6 +81,7 @@ def test_bt_from_a_3d_npz(kurt3d_npz, tmp_path, capsys):
     "arguments, words",
     [
         (["--format", "bt"], "format: bt: OctoMap trees are 3D and this map is 2D"),
+        (["--format", "ot"], "format: ot: OctoMap trees are 3D and this map is 2D"),
         (["--format", "pgm", "--resolution", "0.1"], "resolution: the npz holds a 0.2 m grid and --from does not"),
         (["--format", "pgm", "--bbox=0,0,1"], "bbox: this map is 2D: give 4 numbers"),
         (["--format", "pgm", "--bbox=0,0,0,1,1,1"], "bbox: this map is 2D"),

@@ -1,12 +1,22 @@
-"""The .bt writer against OctoMap itself (octomap-python): its own writeBinary for the same leaves,
-and its readBinary on what we write."""
+"""The .bt and .ot writers against OctoMap itself (octomap-python): its own writeBinary and write for
+the same leaves, and its readBinary and read on what we write."""
 
 import numpy as np
 import pytest
 
 from gmm_core import Grid
 from gmm_core.occupancy import FREE, OCCUPIED, classify
-from services.export.octomap_bt import HEADER, KEY_OFFSET, bt_bytes, cell_keys, lattice_offset, tree_data
+from services.export.octomap_tree import (
+    BT_HEADER,
+    KEY_OFFSET,
+    OT_HEADER,
+    bt_bytes,
+    bt_data,
+    cell_keys,
+    lattice_offset,
+    ot_bytes,
+    ot_data,
+)
 from support.octomap_trees import node_log_odds
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
@@ -33,9 +43,44 @@ def test_same_bytes_as_octomaps_own_writer(seed):
     for key, occupied in leaves.items():
         reference.updateNode((np.array(key) + 0.5) * resolution, occupied)
     keys = np.array(list(leaves)) + KEY_OFFSET
-    size, data = tree_data(keys, np.array(list(leaves.values())))
-    ours = f"{HEADER}id OcTree\nsize {size}\nres {resolution!r}\ndata\n".encode() + data
+    size, data = bt_data(keys, np.array(list(leaves.values())))
+    ours = f"{BT_HEADER}id OcTree\nsize {size}\nres {resolution!r}\ndata\n".encode() + data
     assert ours == reference.writeBinary()  # toMaxLikelihood, prune, then the same depth-first bytes
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_ot_same_bytes_as_octomaps_own_writer(seed):
+    rng = np.random.default_rng(100 + seed)
+    resolution = [0.1, 0.2][seed % 2]
+    leaves = random_leaves(rng, int(rng.integers(1, 300)))
+    log_odds = rng.uniform(-5, 5, len(leaves)).astype(np.float32)
+    reference = octomap.OcTree(resolution)
+    reference.setClampingThresMin(0.001)  # log-odds -6.9 .. 6.9: updateNode keeps these values
+    reference.setClampingThresMax(0.999)
+    for key, value in zip(leaves, log_odds):
+        reference.updateNode((np.array(key) + 0.5) * resolution, float(value), True)  # lazy: no pruning
+    reference.updateInnerOccupancy()  # inner nodes: the largest child's log-odds
+    size, data = ot_data(np.array(list(leaves)) + KEY_OFFSET, log_odds)
+    assert f"{OT_HEADER}id OcTree\nsize {size}\nres {resolution!r}\ndata\n".encode() + data == reference.write()
+
+
+def test_ot_keeps_each_cells_map_log_odds(tmp_path):
+    rng = np.random.default_rng(8)
+    grid = Grid([0.4, -2.0, 1.2], 0.2, (6, 5, 4))
+    prob = rng.random(grid.array_shape).astype(np.float32)
+    prob[0, 0, :3] = [0.5, 1.0, 0.6]  # unseen; 1 as float32 rounds it; the dead band
+    path = tmp_path / "map.ot"
+    path.write_bytes(ot_bytes(prob, grid, 0.21))
+    tree = octomap.OcTree.read(str(path).encode())  # OctoMap's AbstractOcTree::read
+    classes = classify(prob, 0.21)
+    for centre, p, cls in zip(grid.cell_centers(), prob.ravel(), classes.ravel()):
+        log_odds = node_log_odds(tree, centre)
+        if cls == -1:
+            assert log_odds is None
+        else:
+            expected = np.log(p / (1 - p)) if p < 1 else np.log(np.float32(1 - 2**-24) / 2**-24)
+            assert log_odds == pytest.approx(expected, rel=1e-5)
+    assert node_log_odds(tree, grid.cell_centers()[1]) > 16  # p = 1: finite, the largest float32 below 1
 
 
 def load(body: bytes, tmp_path):
