@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -27,10 +28,11 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.state import ServerState
 from services.map_server.tokens import TokenFile
 from support.http_auth import write_tokens
-from support.net import get
+from support.net import get, metric, wait_for
 from support.octomap_trees import node_log_odds
 from support.paths import ROOT
 from support.ros_maps import grid_values, map_server_load
+from support.saturation import saturated_tracers
 from support.uvicorn_thread import Server
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
@@ -146,6 +148,9 @@ def test_refusals(server, server_3d, tmp_path, capsys):
     assert "/v1/occupancy answered 422: resolution: must be between 0.005 and 10.0 m" in capsys.readouterr().err
     assert main(["export", "--url", server.url, "--format", "pgm", "--resolution", "0.001", "--out", out]) == 2
     assert "cells at 0.001 m; an export holds at most 128,000,000" in capsys.readouterr().err
+    with Server(create_app(ServerState("empty", FleetMap("empty")))) as empty:
+        assert main(["export", "--url", empty.url, "--format", "pgm", "--out", out]) == 2
+        assert f"--url: the map at {empty.url} is empty: nothing to export" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
     for fmt in ("bt", "ot"):
         status, _, body = get(f"{server.url}/v1/occupancy?bbox={BBOX}&resolution=0.1&format={fmt}")
@@ -182,3 +187,25 @@ def test_the_command_with_a_token(intel_map, tmp_path):
     np.testing.assert_array_equal(
         data, grid_values(classify(intel_map.occupancy(Grid.from_bbox([-10, -20], [10, 5], 0.1)), 0.21))
     )
+
+
+def test_a_busy_server_is_waited_for(intel_scans, tmp_path, monkeypatch):
+    """A 503 (tracers saturated) is asked again after its Retry-After, not reported as a failure."""
+    fleet = FleetMap("test", trace_threads=1)
+    for s in intel_scans[:20]:
+        fleet.add_scan(ScanMessage("test", "r1", s.index, s.stamp, fit_scan(s.hits, s.no_return), s.pose))
+    cold_grids = [Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], r) for r in (0.2, 0.25, 0.3)]
+    result = {}
+    args = ["export", "--url", "", "--format", "pgm", "--bbox=-8,-12,8,4", "--out", str(tmp_path / "busy")]
+    with Server(create_app(ServerState("test", fleet))) as busy:
+        args[2] = busy.url
+        export = threading.Thread(target=lambda: result.setdefault("rc", main(args)))
+        with saturated_tracers(monkeypatch, fleet, cold_grids):
+            export.start()
+            shed = 'gmmap_tile_answers_total{kind="shed"}'
+            wait_for(lambda: metric(get(f"{busy.url}/metrics")[2].decode(), shed) >= 1, 30, "a 503")
+        export.join(timeout=60)
+    assert result == {"rc": 0}
+    data, _ = map_server_load(tmp_path / "busy.yaml")
+    prob = fleet.occupancy(Grid.from_bbox([-8, -12], [8, 4], 0.1))
+    np.testing.assert_array_equal(data, grid_values(classify(prob, 0.21)))
