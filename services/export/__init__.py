@@ -15,7 +15,7 @@ from .octomap_tree import NOT_3D, bt_bytes, ot_bytes
 from .pgm import map_classes, map_yaml, pgm_bytes
 from .ply import ply_bytes
 
-if TYPE_CHECKING:  # sources needs the HTTP API's limits, and the API these writers
+if TYPE_CHECKING:  # sources imports the HTTP API's limits, and the API imports these writers
     from .sources import ExportMap
 
 FORMATS = ("pgm", "bt", "ot", "ply")  # the pgm, bt and ply, and ot: OctoMap with log-odds

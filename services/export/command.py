@@ -9,6 +9,7 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from gmm_core.occupancy import FREE, OCCUPIED, classify
+from services.http_client import HttpClient, read_token, tls_context
 
 from . import OCTOMAP_FORMATS, check_dimension, write_export
 from .octomap_tree import lattice_offset
@@ -17,10 +18,8 @@ from .sources import ExportMap, check_bbox, check_resolution, crop, fetch, map_d
 DEFAULT_URL_RESOLUTION = 0.1  # m, for --url without --resolution (the ROS map's default in issue 14)
 
 
-def client_for(url: str, token_file: str | None, ca_file: str | None):
+def client_for(url: str, token_file: str | None, ca_file: str | None) -> HttpClient:
     """An HttpClient of `url` (http://HOST:PORT or https://HOST:PORT), with the token and CA given."""
-    from services.http_client import HttpClient, read_token, tls_context
-
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https") or not parts.netloc or parts.path not in ("", "/") or parts.query:
         raise ValueError(f"--url: must be http://HOST:PORT or https://HOST:PORT, got {url!r}")

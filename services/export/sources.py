@@ -49,10 +49,13 @@ def check_bbox(values: list[float], dim: int) -> tuple[np.ndarray, np.ndarray]:
 def read_npz(path: str | Path) -> ExportMap:
     """The map of a `gmmap replay --out` file: `prob`, `origin` (min corner) and `resolution`."""
     try:
-        with np.load(path, allow_pickle=False) as data:
-            fields = {name: data[name] for name in ("prob", "origin", "resolution") if name in data.files}
+        data = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError) as error:
         raise ValueError(f"--from: {path} is not an npz file ({error})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a lone .npy array
+        raise ValueError(f"--from: {path} is not an npz file (one array, not prob, origin and resolution)")
+    with data:
+        fields = {name: data[name] for name in ("prob", "origin", "resolution") if name in data.files}
     missing = [name for name in ("prob", "origin", "resolution") if name not in fields]
     if missing:
         raise ValueError(f"--from: {path} lacks {', '.join(missing)} (write it with `gmmap replay --out`)")

@@ -100,7 +100,12 @@ def test_bad_input_is_refused_and_writes_nothing(intel_npz, tmp_path, capsys, ar
 def test_bad_sources_are_refused(tmp_path, capsys):
     np.savez(tmp_path / "other.npz", prob=np.zeros((2, 2), np.float32))
     (tmp_path / "text.npz").write_text("not a zip")
-    for source, words in (("other.npz", "lacks origin, resolution"), ("text.npz", "is not an npz file")):
+    np.save(tmp_path / "array.npy", np.zeros((2, 2), np.float32))
+    for source, words in (
+        ("other.npz", "lacks origin, resolution"),
+        ("text.npz", "is not an npz file"),
+        ("array.npy", "is not an npz file (one array"),
+    ):
         assert main(["export", "--from", str(tmp_path / source), "--format", "pgm", "--out", str(tmp_path / "x")]) == 2
         assert words in capsys.readouterr().err
     assert main(["export", "--url", "ftp://host:1", "--format", "pgm", "--out", str(tmp_path / "x")]) == 2
