@@ -7,8 +7,13 @@ of the scan (sensor frame) by `|(t1 - t0) + (R1 - R0) p| <= |t1 - t0| + |p| * an
 `reach`, the node's farthest beam end from its sensor, the bound is what a correction can move any
 cell the scan touched, and one below the tolerance is not worth its bytes.
 
+The pose held is the one sent, before the wire rounds it (float32 for a scan's pose, 0.1 mm codes
+for a correction): the server's copy is within half a step of it, and the error does not add up,
+since every comparison is with the last pose sent.
+
 Held compactly for a shift of nodes: one float64 row per node (t, R row-major, reach: 7 numbers in
-2D, 13 in 3D) and a dict entry, about 160 B per node, instead of Pose objects.
+2D, 13 in 3D) and a dict entry: 194 B per node in 2D, 282 in 3D (tracemalloc over 18,000 nodes, the
+table grown by doubling), where a Pose object alone takes about 330.
 """
 
 from __future__ import annotations
