@@ -4,7 +4,9 @@ embeddable agent (services.agent.agent.Agent): the same outbox, keyframes and de
 
 Here the robot's driver and SLAM back end are played by a real log: each CARMEN scan arrives
 with its odometry pose, and at the end the back end's corrected poses go out as one pose-graph
-update. Replace the loop with your sensor callback.
+update, those of the nodes whose scan they move by more than `agent.pose_tolerance` (this
+corrected log's odometry is already the corrected pose, so none do). Replace the loop with your
+sensor callback.
 
     gmmap server &                                  # a map server on tcp/127.0.0.1:7447
     python examples/embedded_agent.py               # then look at http://127.0.0.1:8000/

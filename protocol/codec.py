@@ -2,12 +2,14 @@
 
 Every message is one msgpack map with a version "v" and a type code "t". Scan messages also
 name the encoding "e" of their two mixtures: "f32" (float32 tables, lossless for float32
-inputs) or "q" (quantised, about a third of the size; see protocol.quantize).
+inputs) or "q" (quantised, about a third of the size; see protocol.quantize). Pose-graph updates
+carry int32 pose codes (protocol.pose_codes) since version 3; version 2 messages are still read.
 decode() trusts nothing: whatever the bytes, it returns a valid message or raises ProtocolError.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -27,12 +29,18 @@ from protocol.messages import (
     Rejection,
     ScanMessage,
     StoreInventory,
+    check_ranges,
+    node_ranges,
 )
+from protocol.pose_codes import pose_codes, poses_of_codes
 from protocol.quantize import dequantize, quantize, record_bits, stream_bytes
 from protocol.wire import Fields, float32_bytes, float64_bytes, pose_bytes, pose_from_vector, pose_width
 
-VERSION = 2
-# What changed from the previous version, for the error an old peer's message gets.
+VERSION = 3  # what the encoder writes
+# Versions the decoder reads: version 2 differs only in its pose-graph updates (float64 poses,
+# listed node by node), which map servers' stores and robots' outboxes still hold.
+READS = (2, 3)
+# What changed from a version no longer read, for the error an old peer's message gets.
 VERSION_CHANGES = {1: "acknowledgements name the store; pose-graph updates apply node by node"}
 ENCODINGS = ("q", "f32")
 MAX_COMPONENTS = 4096  # default cap on occupied + free components of one scan
@@ -108,12 +116,13 @@ def _map_without_duplicates(pairs):
 
 def _decode_message(f: Fields, max_components: int) -> Message:
     version = f.get("v", "version")
-    if type(version) is not int or version != VERSION:
+    if type(version) is not int or version not in READS:
         known = type(version) is int and version in VERSION_CHANGES
-        change = f" (version {VERSION}: {VERSION_CHANGES[version]}; upgrade the peer)" if known else ""
-        raise ProtocolError("version", f"unsupported version {version!r:.80}, this decoder reads {VERSION}{change}")
+        change = f" (version {version + 1}: {VERSION_CHANGES[version]}; upgrade the peer)" if known else ""
+        reads = " and ".join(map(str, READS))
+        raise ProtocolError("version", f"unsupported version {version!r:.80}, this decoder reads {reads}{change}")
     code = f.get("t", "type")
-    decoder = _DECODERS.get(code) if type(code) is int else None
+    decoder = (_DECODERS if version == VERSION else _DECODERS_V2).get(code) if type(code) is int else None
     if decoder is None:
         raise ProtocolError("type", f"unknown message type {code!r:.80}")
     return decoder(f, max_components)
@@ -254,23 +263,51 @@ def _decode_scan(f: Fields, max_components: int) -> ScanMessage:
     return ScanMessage(fleet, robot, node, stamp, ScanModel(occupied, free, origin, max_range), pose)
 
 
-# --- pose-graph update, ack, map query and reply: small, so plain float64 and readable keys
+# --- pose-graph update: node ids as ranges, poses as int32 codes (protocol.pose_codes)
 
 
 def _encode_poses(message: PoseGraphUpdate, encoding: str) -> dict:
+    dim = message.dim
+    # The anchor stays float64: one pose, and world frames (UTM, ECEF) lie millions of metres out.
     anchor = None if message.anchor is None else pose_bytes([message.anchor], "<f8", "anchor")
+    nodes = [node for node, _ in message.poses]  # ascending: PoseGraphUpdate keeps them so
     return {
         "f": message.fleet,
         "r": message.robot,
-        "d": message.dim,
+        "d": dim,
         "rev": message.revision,
-        "nodes": np.array([node for node, _ in message.poses], dtype="<u8").tobytes(),
-        "poses": pose_bytes([pose for _, pose in message.poses], "<f8", "poses.poses"),
+        "nodes": np.array(node_ranges(nodes), dtype="<u8").reshape(-1).tobytes(),
+        "poses": pose_codes([pose for _, pose in message.poses], dim, "poses.poses").tobytes(),
         "anchor": anchor,
     }
 
 
 def _decode_poses(f: Fields, max_components: int) -> PoseGraphUpdate:
+    fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
+    dim, revision = f.int("d", "dimension", 2, 3), f.int("rev", "revision")
+    ranges = _ranges(f, "nodes", "poses.nodes")
+    width, count = pose_width(dim), sum(stop - start for start, stop in ranges)
+    codes = f.array("poses", "poses.poses", "<i4", count * width).reshape(count, width)  # sizes count first
+    nodes = itertools.chain.from_iterable(range(start, stop) for start, stop in ranges)
+    anchor = f.array("anchor", "anchor", "<f8", width, nullable=True)
+    anchor_pose = None if anchor is None else pose_from_vector(anchor, "anchor")
+    poses = tuple(zip(nodes, poses_of_codes(codes, dim, "poses.poses")))
+    return PoseGraphUpdate(fleet, robot, revision, poses, anchor_pose)
+
+
+def _ranges(f: Fields, key: str, field: str) -> tuple[tuple[int, int], ...]:
+    """A bin u64 of start, stop pairs: sorted, disjoint, non-touching [start, stop), stop <= 2^63."""
+    bounds = f.array(key, field, "<u8")
+    if len(bounds) % 2:
+        raise ProtocolError(field, f"must hold start, stop pairs, got {len(bounds)} numbers")
+    values = bounds.tolist()
+    return check_ranges(zip(values[::2], values[1::2]), field)
+
+
+# --- version 2 (read, never written): float64 poses listed node by node, the anchor as in version 3
+
+
+def _decode_poses_v2(f: Fields, max_components: int) -> PoseGraphUpdate:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
     dim, revision = f.int("d", "dimension", 2, 3), f.int("rev", "revision")
     nodes = _counts(f.array("nodes", "poses.nodes", "<u8"), "poses.nodes")
@@ -280,6 +317,9 @@ def _decode_poses(f: Fields, max_components: int) -> PoseGraphUpdate:
     poses = tuple((node, pose_from_vector(vector, "poses.poses")) for node, vector in zip(nodes, vectors))
     anchor_pose = None if anchor is None else pose_from_vector(anchor, "anchor")
     return PoseGraphUpdate(fleet, robot, revision, poses, anchor_pose)
+
+
+# --- ack, rejection, inventory, map query and reply: small, so plain numbers and readable keys
 
 
 def _counts(array: np.ndarray, field: str) -> list[int]:
@@ -337,15 +377,12 @@ def _encode_inventory(message: StoreInventory, encoding: str) -> dict:
 
 def _decode_inventory(f: Fields, max_components: int) -> StoreInventory:
     fleet, robot = check_id(f.get("f", "fleet"), "fleet"), check_id(f.get("r", "robot"), "robot")
-    bounds = f.array("ranges", "ranges", "<u8")
-    if len(bounds) % 2:
-        raise ProtocolError("ranges", f"must hold start, stop pairs, got {len(bounds)} numbers")
-    values = _counts(bounds, "ranges")
+    ranges = _ranges(f, "ranges", "ranges")
     revision = f.get("rev", "revision")
     if revision is not None:
         revision = f.int("rev", "revision")
     store = check_id(f.get("store", "store"), "store")
-    return StoreInventory(fleet, robot, store, tuple(zip(values[::2], values[1::2])), revision)
+    return StoreInventory(fleet, robot, store, ranges, revision)
 
 
 def _encode_map_query(message: MapQuery, encoding: str) -> dict:
@@ -418,3 +455,4 @@ _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
     6: _decode_rejection,
     7: _decode_inventory,
 }
+_DECODERS_V2 = _DECODERS | {2: _decode_poses_v2}

@@ -72,6 +72,7 @@ class PoseGraphUpdate:
     updates may arrive in any order and none is lost (protocol version 2). One revision may come
     in several parts (same revision number) when it does not fit one message. `anchor` maps the
     robot's map frame into the fleet's world frame; the newest revision that carried one wins.
+    `poses` are kept in ascending node order, the order version 3 sends them in (as ranges of ids).
     """
 
     fleet: str
@@ -98,11 +99,15 @@ class PoseGraphUpdate:
         dims = {pose.dim for _, pose in poses} | ({self.anchor.dim} if self.anchor is not None else set())
         if len(dims) != 1:
             raise ProtocolError("poses", "all poses and the anchor must share one dimension")
-        object.__setattr__(self, "poses", poses)
+        object.__setattr__(self, "poses", tuple(sorted(poses, key=_node_of)))
 
     @property
     def dim(self) -> int:
         return self.anchor.dim if self.anchor is not None else self.poses[0][1].dim
+
+
+def _node_of(entry: tuple[int, Pose]) -> int:
+    return entry[0]
 
 
 @dataclass(frozen=True)
@@ -174,14 +179,7 @@ class StoreInventory:
 
     def __post_init__(self):
         Ack(self.fleet, self.robot, self.store, "scan", ())
-        ranges = tuple((start, stop) for start, stop in self.ranges)
-        previous = -1
-        for start, stop in ranges:
-            check_count(start, "ranges")
-            check_count(stop, "ranges")
-            if not previous < start < stop:
-                raise ProtocolError("ranges", "must be sorted, disjoint, non-touching [start, stop) with start < stop")
-            previous = stop
+        ranges = check_ranges(self.ranges, "ranges")
         if self.revision is not None:
             check_count(self.revision, "revision")
         object.__setattr__(self, "ranges", ranges)
@@ -189,13 +187,7 @@ class StoreInventory:
     @classmethod
     def of(cls, fleet: str, robot: str, store: str, nodes, revision: int | None = None) -> StoreInventory:
         """The inventory of a set of node ids."""
-        ranges: list[list[int]] = []
-        for node in sorted(set(nodes)):
-            if ranges and ranges[-1][1] == node:
-                ranges[-1][1] = node + 1
-            else:
-                ranges.append([node, node + 1])
-        return cls(fleet, robot, store, tuple((a, b) for a, b in ranges), revision)
+        return cls(fleet, robot, store, node_ranges(sorted(set(nodes))), revision)
 
     def __contains__(self, node: int) -> bool:
         k = bisect.bisect_right(self.ranges, (node, MAX_NODE + 1)) - 1
@@ -203,6 +195,32 @@ class StoreInventory:
 
     def __len__(self) -> int:
         return sum(stop - start for start, stop in self.ranges)
+
+
+MAX_STOP = MAX_NODE + 1  # a range's stop is one past its last node id, so node 2^63 - 1 can be listed
+
+
+def node_ranges(nodes) -> tuple[tuple[int, int], ...]:
+    """Sorted, distinct node ids as sorted, disjoint, non-touching half-open ranges [start, stop)."""
+    ids = np.asarray(nodes, dtype=np.uint64)
+    if not len(ids):
+        return ()
+    breaks = np.flatnonzero(np.diff(ids) != 1)
+    starts, lasts = ids[np.r_[0, breaks + 1]].tolist(), ids[np.r_[breaks, len(ids) - 1]].tolist()
+    return tuple((start, last + 1) for start, last in zip(starts, lasts))
+
+
+def check_ranges(ranges, field: str) -> tuple[tuple[int, int], ...]:
+    """`ranges` as a tuple if they are sorted, disjoint, non-touching [start, stop) with integer
+    0 <= start < stop <= 2^63, else ProtocolError(field)."""
+    ranges = tuple((start, stop) for start, stop in ranges)
+    previous = -1
+    for start, stop in ranges:
+        check_count(start, field)
+        if type(stop) is not int or not previous < start < stop <= MAX_STOP:
+            raise ProtocolError(field, "must be sorted, disjoint, non-touching [start, stop) with start < stop <= 2^63")
+        previous = stop
+    return ranges
 
 
 @dataclass(frozen=True, eq=False)

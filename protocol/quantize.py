@@ -73,7 +73,7 @@ WEIGHT_OF_CODE = np.exp2(np.arange(WEIGHT_MAX + 1) / WEIGHT_STEPS_PER_OCTAVE)
 # --- rotations, vectorised over components
 
 
-def _quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     """(K, 3, 3) rotations -> (K, 4) unit quaternions (w, x, y, z), branch on the largest
     diagonal term so no component is found by dividing by a tiny number (Shepperd)."""
     m = R
@@ -284,7 +284,7 @@ def _principal_quaternion(axes: np.ndarray, std_codes: np.ndarray) -> np.ndarray
     for column in (0, 1):
         axes[:, :, column] *= _lead_sign(axes[:, :, column])[:, None]
     axes[np.linalg.det(axes) < 0, :, 2] *= -1
-    q = _quaternion_from_matrix(axes)
+    q = quaternion_from_matrix(axes)
     low_pair, high_pair = std_codes[:, 0] == std_codes[:, 1], std_codes[:, 1] == std_codes[:, 2]
     u = axes[:, :, 2] * _lead_sign(axes[:, :, 2])[:, None]  # low pair: z -> u, q = (1 + u.z, z x u)
     z_arc = np.stack([1 + u[:, 2], -u[:, 1], u[:, 0], np.zeros(len(u))], axis=1)

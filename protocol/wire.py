@@ -138,7 +138,8 @@ def pose_from_vector(vector: np.ndarray, field: str) -> Pose:
     if len(vector) == 3:
         return Pose.from_xytheta(*vector.tolist())  # Python floats: exact, and quicker than numpy scalars
     vector = vector.astype(np.float64)
-    norm = np.linalg.norm(vector[3:])
+    with np.errstate(over="ignore"):  # components near 1e308 square to inf: a norm that is not 1
+        norm = np.linalg.norm(vector[3:])
     if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
         raise ProtocolError(field, f"quaternion norm {norm:.6g} is not 1")
     return Pose.from_quaternion(vector[:3], vector[3:])

@@ -12,7 +12,6 @@ finite source ends when the outbox is empty.
 from __future__ import annotations
 
 import logging
-import math
 import sys
 import threading
 import time
@@ -38,11 +37,12 @@ from protocol import (
     scan_key,
 )
 from services.config import GmmapConfig, summary
-from services.datasets.keyframes import KeyframeConfig, KeyframeFilter, turned
+from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
 from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
 from .outbox import Outbox
+from .sent_poses import SentPoses, beam_reach
 from .sources import (
     FixedCorrections,
     Node,
@@ -83,7 +83,7 @@ class Agent:
         self.unsent = 0  # scans not published because of a refusal
         self.kept = 0  # nodes of publish_all's source that the keyframe policy kept
         self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
-        self._sent_poses: dict[int, Pose] = {}  # node -> the corrected pose last sent in an update
+        self._sent_poses = SentPoses()  # what the server holds of each node's pose, and the node's reach
         self.store: str | None = None  # the store this agent reports to, from its inventory
         # {store that had acknowledged them: messages sent again}, because the store reported to lacked them
         self.requeued: dict[str, int] = {}
@@ -320,29 +320,24 @@ class Agent:
 
     def correct(self, poses: Mapping[int, Pose], anchor: Pose | None = None) -> int | None:
         """Send a pose-graph update: corrected sensor poses of earlier nodes (and where the robot's
-        map frame sits in the fleet's world, if known); returns its revision, or None when no pose
-        moved by more than `pose_tolerance` since it was last sent and there is no anchor.
+        map frame sits in the fleet's world, if known); returns its revision, or None when no
+        node's scan would move by more than `pose_tolerance` and there is no anchor.
 
-        Only the nodes that moved go out (protocol v2 applies updates node by node), so the cost of
-        a correction follows what it changed, not the length of the mission.
+        A node goes out only when some beam end of its scan would move by more than `pose_tolerance`
+        metres from where the server has it (the scan's own pose, or the correction last sent):
+        protocol v2 and later apply updates node by node, so the cost of a correction follows what
+        it changes in the map, not the length of the mission. A node whose scan this agent did not
+        send (a previous run's) has no known reach and goes out whenever it is corrected.
         """
         o = self.options
-        moved = {node: pose for node, pose in poses.items() if self._moved(node, pose)}
+        moved = self._sent_poses.moved(poses, o.pose_tolerance)
         if not moved and anchor is None:
             return None
         update = PoseGraphUpdate(o.fleet, o.robot, 0, tuple(moved.items()), anchor)  # checked before numbering
         revision = self.outbox.next_revision()  # increasing across runs of this outbox
         self.send("poses", revision, poses_key(o.fleet, o.robot), encode(replace(update, revision=revision)))
-        self._sent_poses.update(moved)
+        self._sent_poses.corrections_sent(moved)
         return revision
-
-    def _moved(self, node: int, pose: Pose) -> bool:
-        """Whether `pose` differs from the one last sent for `node` by more than the tolerance."""
-        sent = self._sent_poses.get(node)
-        tolerance = self.options.pose_tolerance
-        if sent is None:
-            return True
-        return bool(np.linalg.norm(pose.t - sent.t) > tolerance or math.radians(turned(sent, pose)) > tolerance)
 
     def flush(self, timeout: float) -> int:
         """Wait until everything sent is acknowledged, at most `timeout` s; returns what is still held
@@ -350,8 +345,16 @@ class Agent:
         return self.wait_acknowledged(timeout)
 
     def _send_scan(
-        self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float, raw: bytes | None = None
+        self,
+        node: int,
+        points: np.ndarray,
+        no_return: np.ndarray,
+        pose: Pose,
+        stamp: float,
+        raw: bytes | None = None,
+        reach: float | None = None,
     ) -> bool:
+        """Send a scan: fitted from its beams, or `raw` (fitted ahead, with its beams' `reach`)."""
         if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
             self.unsent += 1
             return False
@@ -361,7 +364,11 @@ class Agent:
         o = self.options
         raw = raw or self._encoded(node, points, no_return, pose, stamp)
         self.send("scan", node, scan_key(o.fleet, o.robot, node), raw)
+        self._sent_poses.scan_sent(node, pose, self._reach(points, no_return, pose.dim) if reach is None else reach)
         return True
+
+    def _reach(self, points: np.ndarray, no_return: np.ndarray, dim: int) -> float:
+        return beam_reach(points, no_return, self.fit.for_dimension(dim).max_range)
 
     def _encoded(self, node: int, points: np.ndarray, no_return: np.ndarray, pose: Pose, stamp: float) -> bytes:
         """The node's ScanMessage: the scan fitted (Sec. III-A/B) and encoded."""
@@ -371,7 +378,9 @@ class Agent:
 
     def _send_node(self, node: Node) -> bool:
         scan = node.scan
-        return self._send_scan(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp, node.message)
+        return self._send_scan(
+            node.node, scan.hits, scan.no_return, node.estimate, scan.stamp, node.message, node.reach
+        )
 
     def prepare(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> list[Node]:
         """Every node fitted and encoded ahead, its beams dropped: a simulated robot that prepares its
@@ -380,8 +389,9 @@ class Agent:
         for node in nodes:
             scan = node.scan
             raw = self._encoded(node.node, scan.hits, scan.no_return, node.estimate, scan.stamp)
+            reach = self._reach(scan.hits, scan.no_return, node.estimate.dim)
             beamless = replace(scan, hits=scan.hits[:0], no_return=scan.no_return[:0])
-            prepared.append(replace(node, scan=beamless, message=raw))
+            prepared.append(replace(node, scan=beamless, message=raw, reach=reach))
             if progress is not None:
                 progress(1)
         return prepared

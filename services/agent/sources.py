@@ -34,6 +34,7 @@ class Node:
     message: bytes | None = (
         None  # the encoded ScanMessage when fitted ahead (Agent.prepare); `scan` then keeps no beams
     )
+    reach: float | None = None  # with `message`: the farthest beam end from the sensor, metres
 
 
 def parse_source(text: str) -> tuple[str | None, str]:

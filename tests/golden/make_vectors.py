@@ -44,7 +44,7 @@ from protocol.messages import (  # noqa: E402
     ScanMessage,
     StoreInventory,
 )
-from support.golden import FOLDER, describe, to_json  # noqa: E402
+from support.golden import FOLDER, describe, to_json, version_2_update  # noqa: E402
 
 FLEET, ROBOT, STORE = "fleet-a", "robot_1", "0123456789abcdef0123456789abcdef"
 STAMP = 1700000000.25
@@ -57,6 +57,9 @@ class Vector:
     encoding: str = "q"
     exact: bool = False  # ties and folds: the robustness check leaves means and axes as they are
     fixed_point: bool = True  # encode(decode(bytes)) == bytes; see edges_3d for why not always
+    # the bytes of an older version holding build()'s values, which the decoder must still read
+    # (re-encoded they become the current version's bytes of build())
+    older: Callable[[], bytes] | None = None
 
 
 # --- inputs
@@ -165,14 +168,16 @@ def edges_3d() -> ScanMessage:
 
 
 def poses_2d() -> PoseGraphUpdate:
-    """theta = -pi is sent as pi, a negative zero as 0.0; no anchor (nil)."""
+    """theta = -pi and pi are one code, -2^31; a negative zero is code 0; node 2^63 - 1 is the
+    range [2^63 - 1, 2^63); no anchor (nil)."""
     half_turn = Pose(np.array([[-1.0, 0.0], [-0.0, -1.0]]), np.array([4.0, -0.0]))  # atan2(-0.0, -1) = -pi
     poses = ((3, Pose.from_xytheta(10.5, -3.25, 0.5)), (4, half_turn), (2**63 - 1, Pose.from_xytheta(-0.0, 7.0, -0.0)))
     return PoseGraphUpdate(FLEET, ROBOT, 7, poses)
 
 
 def poses_3d() -> PoseGraphUpdate:
-    """A half turn (w = 0) whose quaternion comes out as (0, -1, 0, 0): sent as (0, 1, 0, 0); an anchor."""
+    """A half turn (w = 0) whose quaternion comes out as (0, -1, 0, 0): sent as (0, 1, 0, 0); an
+    anchor (float64) far out, as world frames are."""
     c, s = math.cos(-math.pi), math.sin(-math.pi)
     half_turn = Pose(np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]), np.array([0.0, 1.0, 0.0]))
     poses = ((10, Pose.from_quaternion([1.0, 2.0, 3.0], [0.5, 0.5, 0.5, 0.5])), (11, half_turn))
@@ -182,6 +187,10 @@ def poses_3d() -> PoseGraphUpdate:
 
 def anchor_only_2d() -> PoseGraphUpdate:
     return PoseGraphUpdate(FLEET, ROBOT, 8, (), Pose.from_xytheta(250.0, -125.5, 1.0))
+
+
+def poses_2d_version_2() -> bytes:
+    return version_2_update(poses_2d())
 
 
 VECTORS: dict[str, Vector] = {
@@ -197,6 +206,12 @@ VECTORS: dict[str, Vector] = {
     "poses_2d": Vector("2D pose-graph update: theta at -pi, negative zeros, anchor nil", poses_2d),
     "poses_3d": Vector("3D pose-graph update: a half turn (w = 0), an anchor", poses_3d),
     "poses_anchor_only": Vector("2D pose-graph update with an anchor and no poses", anchor_only_2d),
+    "poses_2d_v2": Vector(
+        "poses_2d in protocol version 2 (float64 poses): still read",
+        poses_2d,
+        fixed_point=False,
+        older=poses_2d_version_2,
+    ),
     "ack_scan_queued": Vector(
         "acknowledgement of scans, some queued", lambda: Ack(FLEET, ROBOT, STORE, "scan", (1, 2, 3, 2**63 - 1), (4, 5))
     ),
@@ -291,9 +306,9 @@ def with_padding_bit() -> bytes:
 
 def with_long_quaternion() -> bytes:
     raw = msgpack.unpackb(encode(poses_3d()), raw=False)
-    poses = np.frombuffer(raw["poses"], "<f8").copy()
-    poses[3:7] *= 1.002  # norm 1.002: beyond the tolerance of 1e-3
-    raw["poses"] = poses.tobytes()
+    codes = np.frombuffer(raw["poses"], "<i4").copy()
+    codes[3:7] = np.rint(codes[3:7] * 1.002)  # the codes of (0.5, 0.5, 0.5, 0.5) * 1.002: beyond 1e-3 of 1
+    raw["poses"] = codes.tobytes()
     return msgpack.packb(raw, use_bin_type=True)
 
 
@@ -329,7 +344,12 @@ REFUSED: dict[str, Refused] = {
         edited("inventory_empty", (("ranges",), np.array([0, 2, 2, 4], "<u8").tobytes())),
         "ranges",
     ),
-    "quaternion_not_unit": Refused("a pose-graph quaternion of norm 1.002", with_long_quaternion, "poses.poses"),
+    "quaternion_not_unit": Refused("pose-graph quaternion codes of norm 1.002", with_long_quaternion, "poses.poses"),
+    "node_ranges_odd": Refused(
+        "pose-graph node ids: a start without its stop",
+        edited("poses_3d", (("nodes",), np.array([10], "<u8").tobytes())),
+        "poses.nodes",
+    ),
     "padding_bit": Refused("a set padding bit after the last record", with_padding_bit, "free.components"),
     "stream_length": Refused(
         "a q stream of 28 bytes: no whole number of 58-bit records",
@@ -346,7 +366,7 @@ def write_vectors(folder: Path = FOLDER) -> list[Path]:
     written = []
     for name, vector in VECTORS.items():
         message = vector.build()
-        data = encode(message, vector.encoding)
+        data = encode(message, vector.encoding) if vector.older is None else vector.older()
         if (encode(decode(data, max_bytes=len(data)), vector.encoding) == data) != vector.fixed_point:
             raise AssertionError(f"{name}: fixed_point is {vector.fixed_point}, re-encoding says otherwise")
         scan_q = isinstance(message, ScanMessage) and vector.encoding == "q"

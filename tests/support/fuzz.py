@@ -17,6 +17,7 @@ from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.codec import encode
 from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
+from support.golden import version_2_update
 
 
 def random_rotations(rng: np.random.Generator, count: int, dim: int) -> np.ndarray:
@@ -64,8 +65,11 @@ def seed_messages(rng: np.random.Generator) -> list[bytes]:
         for encoding in ("q", "f32"):
             messages.append(encode(scan_message(rng, dim, int(rng.integers(1, 12)), int(rng.integers(0, 3))), encoding))
         messages.append(encode(scan_message(rng, dim, 0, 0)))
-        poses = tuple((node, Pose.identity(dim)) for node in range(int(rng.integers(1, 5))))
-        messages.append(encode(PoseGraphUpdate("fleet-a", "robot_1", 3, poses, Pose.identity(dim))))
+        nodes = rng.choice(40, size=int(rng.integers(1, 8)), replace=False).tolist()  # a few ranges
+        rotations = random_rotations(rng, len(nodes), dim)
+        poses = tuple((node, Pose(R, rng.normal(0, 50, dim))) for node, R in zip(nodes, rotations))
+        update = PoseGraphUpdate("fleet-a", "robot_1", 3, poses, Pose.identity(dim))
+        messages += [encode(update), version_2_update(update)]  # stores and outboxes hold version 2
         messages.append(encode(MapQuery("fleet-a", np.zeros(dim), np.ones(dim), 0.1, ("robot_1",))))
         messages.append(encode(MapReply("fleet-a", np.zeros(dim), 0.5, rng.uniform(size=(2,) * dim))))
     store = "0123456789abcdef0123456789abcdef"

@@ -8,13 +8,14 @@ import json
 from pathlib import Path
 
 import msgpack
+import numpy as np
 
 from gmm_core.mixture import Mixture
 from protocol import quantize as qz
 from protocol.bitstream import unpack_records
 from protocol.codec import decode
 from protocol.messages import Ack, MapQuery, Message, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
-from protocol.wire import pose_vector
+from protocol.wire import pose_bytes, pose_vector
 
 FOLDER = Path(__file__).resolve().parents[1] / "golden"
 
@@ -89,6 +90,16 @@ def decoded_values(message: Message) -> dict:
         "shape": list(message.probabilities.shape),
         "probabilities": message.probabilities.reshape(-1).tolist(),
     }
+
+
+def version_2_update(update: PoseGraphUpdate) -> bytes:
+    """The bytes a version-2 encoder wrote for `update`: node ids one by one (u64), poses and the
+    anchor as float64 (theta = -pi sent as pi), keys in the order of version 3."""
+    wire = {"v": 2, "t": 2, "f": update.fleet, "r": update.robot, "d": update.dim, "rev": update.revision}
+    wire["nodes"] = np.array([node for node, _ in update.poses], "<u8").tobytes()
+    wire["poses"] = pose_bytes([pose for _, pose in update.poses], "<f8", "poses.poses")
+    wire["anchor"] = None if update.anchor is None else pose_bytes([update.anchor], "<f8", "anchor")
+    return msgpack.packb(wire, use_bin_type=True)
 
 
 def record_codes(raw_mixture: dict, dim: int) -> list[dict]:

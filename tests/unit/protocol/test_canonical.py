@@ -127,7 +127,7 @@ def test_negative_zero_is_sent_as_zero():
 
 def raw_poses(update: PoseGraphUpdate) -> np.ndarray:
     raw = msgpack.unpackb(encode(update), raw=False)
-    return np.frombuffer(raw["poses"], "<f8").reshape(len(update.poses), -1)
+    return np.frombuffer(raw["poses"], "<i4").reshape(len(update.poses), -1)
 
 
 def test_a_half_turn_sends_the_first_non_zero_quaternion_component_positive():
@@ -136,14 +136,39 @@ def test_a_half_turn_sends_the_first_non_zero_quaternion_component_positive():
     assert minus_pi_about_x.as_quaternion()[1] == -1.0
     about_y = Pose.from_quaternion(np.zeros(3), [0.0, 0.0, -1.0, 0.0])
     sent = raw_poses(PoseGraphUpdate("f", "r", 1, ((1, minus_pi_about_x), (2, about_y))))
-    np.testing.assert_array_equal(sent[:, 3:], [[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
-    assert not np.signbit(sent).any()
+    one = 2**31 - 1
+    np.testing.assert_array_equal(sent[:, 3:], [[0, one, 0, 0], [0, 0, one, 0]])
 
 
-def test_2d_theta_minus_pi_is_sent_as_pi():
+def test_2d_theta_pi_and_minus_pi_are_one_code():
     minus_pi = Pose(np.array([[-1.0, 0.0], [-0.0, -1.0]]), np.zeros(2))
     assert minus_pi.as_xytheta()[2] == -math.pi
-    assert raw_poses(PoseGraphUpdate("f", "r", 1, ((1, minus_pi),)))[0, 2] == math.pi
+    pi = Pose.from_xytheta(0.0, 0.0, math.pi)
+    assert pi.as_xytheta()[2] == math.pi
+    assert raw_poses(PoseGraphUpdate("f", "r", 1, ((1, minus_pi), (2, pi))))[:, 2].tolist() == [-(2**31)] * 2
+
+
+def test_pose_codes_round_half_to_even():
+    """x = 0.00025 m is 2.5 steps of 0.1 mm (in float64, 0.00025 * 10000 is 2.5 exactly): code 2;
+    0.00035 is 3.5 steps: code 4."""
+    assert 0.00025 * 10000 == 2.5 and 0.00035 * 10000 == 3.5
+    poses = ((1, Pose.from_xytheta(0.00025, 0.00035, 0.0)), (2, Pose.from_xytheta(-0.00025, -0.00035, 0.0)))
+    assert raw_poses(PoseGraphUpdate("f", "r", 1, poses))[:, :2].tolist() == [[2, 4], [-2, -4]]
+
+
+def test_2d_pose_updates_are_fixed_points_of_decode_and_encode_and_3d_ones_nearly():
+    """A 2D code decodes to a value half a step from every rounding boundary. A 3D quaternion is
+    normalised by the decoder, which moves a large component's code by at most one step."""
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        poses = tuple((node, Pose.from_xytheta(*rng.normal(0, 300, 2), rng.uniform(-4, 4))) for node in range(50))
+        data = encode(PoseGraphUpdate("f", "r", 1, poses))
+        assert encode(decode(data)) == data
+    poses = tuple((node, Pose.from_quaternion(rng.normal(0, 300, 3), rng.normal(size=4))) for node in range(500))
+    sent = raw_poses(PoseGraphUpdate("f", "r", 1, poses))
+    again = raw_poses(decode(encode(PoseGraphUpdate("f", "r", 1, poses))))
+    np.testing.assert_array_equal(again[:, :3], sent[:, :3])
+    assert np.abs(again[:, 3:] - sent[:, 3:]).max() <= 1
 
 
 def test_2d_f32_scans_and_messages_without_poses_are_fixed_points_of_decode_and_encode():

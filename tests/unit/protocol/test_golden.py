@@ -64,8 +64,12 @@ def test_vector_decodes_to_its_json(name):
 def test_encoder_writes_the_vector_from_its_inputs_and_from_its_decoded_message(name):
     data, want = load(FOLDER, name)
     vector = VECTORS[name]
-    assert encode(vector.build(), vector.encoding) == data
     again = encode(decode(data, max_bytes=len(data)), vector.encoding)
+    if vector.older is not None:  # an older version's bytes: read, and written in the current version
+        assert vector.older() == data and not want["fixed_point"]
+        assert again == encode(vector.build(), vector.encoding)
+        return
+    assert encode(vector.build(), vector.encoding) == data
     assert (again == data) is vector.fixed_point is want["fixed_point"]
     if not vector.fixed_point:  # other codes of the same mixture, within a quantisation step
         assert len(again) == len(data) and decode(again).model.n_components == decode(data).model.n_components

@@ -26,6 +26,7 @@ from protocol import (
 from protocol import quantize as qz
 from protocol.codec import UNCHECKED
 from support.fuzz import mutate, random_rotations, scan_like_mixture, scan_message, seed_messages
+from support.golden import version_2_update
 
 pytestmark = pytest.mark.filterwarnings("error")  # a numpy warning means a value slipped through
 
@@ -177,8 +178,9 @@ def test_other_messages_round_trip():
     poses = ((3, Pose.from_xytheta(1, 2, 0.5)), (9, Pose.from_xytheta(-1, 0, -3.0)))
     update = decode(encode(PoseGraphUpdate("f", "r", 12, poses, Pose.from_xytheta(1e6, 5e6, 0.1))))
     assert update.revision == 12 and [node for node, _ in update.poses] == [3, 9]
-    np.testing.assert_allclose(update.poses[1][1].R, poses[1][1].R, atol=1e-12)
-    np.testing.assert_array_equal(update.anchor.t, [1e6, 5e6])  # float64 on the wire
+    np.testing.assert_allclose(update.poses[1][1].R, poses[1][1].R, atol=1e-9)  # 2pi / 2^32 steps
+    np.testing.assert_allclose(update.poses[1][1].t, poses[1][1].t, atol=0.5e-4, rtol=0)  # 0.1 mm steps
+    np.testing.assert_array_equal(update.anchor.t, [1e6, 5e6])  # the anchor is float64 on the wire
     update3 = decode(encode(PoseGraphUpdate("f", "r", 0, ((0, Pose.from_quaternion([1, 2, 3], [1, 2, 3, 4])),))))
     assert update3.anchor is None and update3.dim == 3
     assert decode(encode(Ack("f", "r", "s1", "poses", (12,)))) == Ack("f", "r", "s1", "poses", (12,))
@@ -252,7 +254,7 @@ def set_padding_bit(raw: dict) -> dict:
 
 INVALID_SCANS = [
     # (name, encoding, edit of the wire map, field named in the error)
-    ("version", "q", lambda r: set_path(r, ("v",), 3), "version"),
+    ("version", "q", lambda r: set_path(r, ("v",), 4), "version"),
     ("version type", "q", lambda r: set_path(r, ("v",), "1"), "version"),
     ("message type", "q", lambda r: set_path(r, ("t",), 42), "type"),
     ("encoding", "q", lambda r: set_path(r, ("e",), "f16"), "encoding"),
@@ -361,18 +363,38 @@ def test_limits():
 INVALID_OTHERS = [
     (
         PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (2, Pose.identity(2)))),
-        lambda r: set_path(r, ("nodes",), np.array([4, 4], "<u8").tobytes()),
+        lambda r: set_path(r, ("nodes",), np.array([4, 4], "<u8").tobytes()),  # an empty range
+        "poses.nodes",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (3, Pose.identity(2)))),
+        lambda r: set_path(r, ("nodes",), np.array([1, 2, 2, 3], "<u8").tobytes()),  # touching ranges
         "poses.nodes",
     ),
     (
         PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("nodes",), np.array([2**63], "<u8").tobytes()),
+        lambda r: set_path(r, ("nodes",), np.array([2**63, 2**63 + 1], "<u8").tobytes()),
         "poses.nodes",
     ),
     (
         PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("poses",), r["poses"][:-8]),
+        lambda r: set_path(r, ("nodes",), np.array([1], "<u8").tobytes()),  # a start without its stop
+        "poses.nodes",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
+        lambda r: set_path(r, ("nodes",), np.array([0, 2**62], "<u8").tobytes()),  # 2^62 poses: not sent
         "poses.poses",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
+        lambda r: set_path(r, ("poses",), r["poses"][:-4]),
+        "poses.poses",
+    ),
+    (
+        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(3)),)),
+        lambda r: set_path(r, ("poses",), np.array([0, 0, 0, 2**31 - 1, 2**31 - 1, 0, 0], "<i4").tobytes()),
+        "poses.poses",  # a quaternion of norm sqrt(2)
     ),
     (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)), lambda r: set_path(r, ("rev",), -2), "revision"),
     (
@@ -448,7 +470,11 @@ def test_fuzz_sees_only_protocol_errors():
             assert not error.message.startswith(UNCHECKED), error  # every rejection is a named check
             continue
         valid += 1
-        decode(encode(message))  # whatever decodes can be forwarded
+        try:
+            decode(encode(message))  # whatever decodes can be forwarded
+        except ProtocolError as error:  # but a version-2 pose beyond version 3's ±214 km
+            assert isinstance(message, PoseGraphUpdate) and error.field == "poses.poses", error
+            assert "beyond ±214748.3647 m" in error.message
     assert 0 < valid < 4000
 
 
@@ -486,8 +512,48 @@ def test_store_inventory_round_trip_and_ranges():
 
 
 def test_a_version_1_message_is_refused_with_what_changed():
-    import msgpack
-
-    old = msgpack.packb({"v": 1, "t": 3, "f": "f", "r": "r", "kind": "scan", "ids": b""}, use_bin_type=True)
-    with pytest.raises(ProtocolError, match="version 2: acknowledgements name the store"):
+    old = pack({"v": 1, "t": 3, "f": "f", "r": "r", "kind": "scan", "ids": b""})
+    with pytest.raises(
+        ProtocolError, match=r"^version: unsupported version 1, this decoder reads 2 and 3 \(version 2: ackn"
+    ):
         decode(old)
+    with pytest.raises(ProtocolError, match=r"^version: unsupported version 4, this decoder reads 2 and 3$"):
+        decode(pack(wire(Ack("f", "r", "s", "scan", (1,))) | {"v": 4}))
+
+
+def test_version_2_messages_of_every_type_still_decode():
+    """Stores and outboxes hold version-2 bytes: every type but the pose-graph update is the same
+    map under v 2; a v2 update lists nodes one by one with float64 poses (its golden vector: poses_2d_v2)."""
+    rng = np.random.default_rng(3)
+    for message, encoding in (
+        (scan_message(rng, 2, 8, 2), "q"),
+        (scan_message(rng, 3, 8, 2), "f32"),
+        (Ack("f", "r", "s", "scan", (1, 2), (3,)), "q"),
+        (MapQuery("f", [0, 0], [1, 1], 0.1, ("a",)), "q"),
+        (MapReply("f", [0, 0], 0.1, np.full((2, 3), 0.5)), "q"),
+    ):
+        raw = wire(message, encoding)
+        assert raw["v"] == 3
+        assert encode(decode(pack(raw | {"v": 2})), encoding) == encode(message, encoding)
+    poses = ((9, Pose.from_xytheta(1.23456789, -2.0, 0.3)), (2, Pose.from_xytheta(-5.0, 0.5, -1.0)))
+    v2 = version_2_update(PoseGraphUpdate("f", "r", 4, poses))
+    update = decode(v2)
+    assert [node for node, _ in update.poses] == [2, 9]
+    assert update.poses[1][1].t.tolist() == [1.23456789, -2.0]  # float64, as sent
+    assert update.poses[0][1].as_xytheta()[2] == pytest.approx(-1.0, abs=1e-15)
+    raw = msgpack.unpackb(v2, raw=False)
+    with pytest.raises(ProtocolError, match="^poses.poses: must hold 6 x 8 bytes"):
+        decode(pack(raw | {"poses": raw["poses"][:-8]}))
+
+
+def test_pose_translations_beyond_the_int32_codes_are_refused_by_the_encoder():
+    edge = 214748.3647  # 2^31 - 1 steps of 0.1 mm
+    update = decode(encode(PoseGraphUpdate("f", "r", 1, ((1, Pose.from_xytheta(edge, -edge, 0.0)),))))
+    assert update.poses[0][1].t.tolist() == [edge, -edge]
+    for t in ([edge + 1e-4, 0.0], [0.0, -edge - 2e-4]):
+        with pytest.raises(ProtocolError, match="^poses.poses: translation .* beyond"):
+            encode(
+                PoseGraphUpdate("f", "r", 1, ((1, Pose.from_xytheta(0.0, 0.0, 0.0)), (2, Pose.from_xytheta(*t, 0.0))))
+            )
+    far = Pose.from_quaternion([5e6, -3e6, 100.0], [1.0, 0.0, 0.0, 0.0])  # UTM-like: the anchor is float64
+    assert decode(encode(PoseGraphUpdate("f", "r", 1, (), far))).anchor.t.tolist() == [5e6, -3e6, 100.0]

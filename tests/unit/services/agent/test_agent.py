@@ -1,9 +1,11 @@
-"""The agent's pose-graph updates: only the nodes that moved since the pose last sent go out."""
+"""The agent's pose-graph updates: only nodes whose scan a correction moves by more than the
+tolerance (from the pose the server holds) go out."""
 
 from __future__ import annotations
 
 import sqlite3
 
+import numpy as np
 import pytest
 
 from gmm_core import Pose
@@ -20,7 +22,7 @@ from support.net import free_port
 def offline_agent(tmp_path):
     """An agent whose server is not there: what it sends stays in its outbox."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    options = AgentConfig(robot="r", zenoh_connect=(endpoint,), pose_tolerance=1e-3)
+    options = AgentConfig(robot="r", zenoh_connect=(endpoint,), pose_tolerance=0.01)
     agent = Agent(options, Outbox(tmp_path / "o.db", "default", "r"), zenoh_config("client", connect=[endpoint]))
     yield agent
     agent.close()
@@ -33,18 +35,34 @@ def sent_updates(path) -> list[PoseGraphUpdate]:
     return [decode(raw, expect=PoseGraphUpdate) for (raw,) in rows]
 
 
-def test_updates_carry_only_the_nodes_that_moved_beyond_the_tolerance(offline_agent, tmp_path):
+def test_updates_carry_only_the_nodes_whose_scan_moves_beyond_the_tolerance(offline_agent, tmp_path):
+    """Tolerance 1 cm; every scan's farthest hit is 5 m from its sensor, so a turn counts 5 m per rad."""
+    hits = np.array([[5.0, 0.0], [1.0, 2.0], [0.0, -3.0]])
     poses = {n: Pose.from_xytheta(n, 0.0, 0.0) for n in range(4)}
-    assert offline_agent.correct(poses) == 1
-    creep = dict(poses) | {1: Pose.from_xytheta(1.0009, 0.0, 0.0)}  # under 1 mm: not sent
-    assert offline_agent.correct(creep) is None
-    # 1 mm more is 1.9 mm from the pose last sent: sent; a turn of 2 mrad too
-    moved = creep | {1: Pose.from_xytheta(1.0019, 0.0, 0.0), 3: Pose.from_xytheta(3.0, 0.0, 0.002)}
-    assert offline_agent.correct(moved) == 2
-    assert offline_agent.correct(moved, anchor=Pose.from_xytheta(5, 5, 0)) == 3  # an anchor always goes out
+    for n, pose in poses.items():
+        assert offline_agent.add_scan(hits, None, pose, float(n), node=n) == n
+    assert offline_agent.correct(poses) is None  # the server holds the scans' own poses
+    creep = poses | {1: Pose.from_xytheta(1.009, 0.0, 0.0), 2: Pose.from_xytheta(2.0, 0.0, 0.0019)}
+    assert offline_agent.correct(creep) is None  # 9 mm; 1.9 mrad * 5 m = 9.5 mm
+    moved = creep | {1: Pose.from_xytheta(1.011, 0.0, 0.0), 3: Pose.from_xytheta(3.0, 0.0, 0.0021)}
+    moved[7] = Pose.from_xytheta(7.0, 0.0, 0.0)  # a node this agent did not send: its reach is unknown
+    assert offline_agent.correct(moved) == 1  # 11 mm; 2.1 mrad * 5 m = 10.5 mm; node 7
+    back = moved | {1: Pose.from_xytheta(1.005, 0.0, 0.0)}  # 6 mm from the correction the server holds
+    assert offline_agent.correct(back) == 2  # node 7 again: unknown reach counts as moved
+    assert offline_agent.correct(back, anchor=Pose.from_xytheta(5, 5, 0)) == 3  # an anchor always goes out
     updates = sent_updates(tmp_path / "o.db")
-    assert [[n for n, _ in u.poses] for u in updates] == [[0, 1, 2, 3], [1, 3], []]
-    assert updates[2].anchor is not None
+    assert [[n for n, _ in u.poses] for u in updates] == [[1, 3, 7], [7], [7]]
+    assert updates[0].poses[0][1].t.tolist() == [1.011, 0.0] and updates[2].anchor is not None
+
+
+def test_a_scan_sent_again_keeps_the_correction_held(offline_agent):
+    """A lost scan fitted again goes out with its old estimate, but the server keeps the correction
+    it holds (node by node, by revision): the agent compares against that correction."""
+    hits = np.array([[2.0, 0.0]])
+    offline_agent.add_scan(hits, None, Pose.from_xytheta(0.0, 0.0, 0.0), 0.0, node=0)
+    assert offline_agent.correct({0: Pose.from_xytheta(0.5, 0.0, 0.0)}) == 1
+    offline_agent._send_scan(0, hits, np.empty((0, 2)), Pose.from_xytheta(0.0, 0.0, 0.0), 0.0)
+    assert offline_agent.correct({0: Pose.from_xytheta(0.505, 0.0, 0.0)}) is None
 
 
 def test_prepared_nodes_publish_the_bytes_a_live_fit_would(offline_agent, tmp_path):
