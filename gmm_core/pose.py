@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,12 +94,9 @@ class Pose:
         return np.asarray(points) @ self.R.T + self.t
 
     def displacement(self, other: Pose, reach: float) -> float:
-        """The farthest any point within `reach` of the local origin moves from this pose to `other`:
-        |t' - t| + reach ||R' - R||_2, where the spectral norm of R' - R is 2 sin(phi / 2) =
-        sqrt(d - tr(R^T R')) for the angle phi between the rotations (an upper bound, reached in 2D)."""
-        cos_sum = float(np.sum(self.R * other.R))  # tr(R^T R')
-        turn = math.sqrt(max(0.0, self.dim - cos_sum))
-        return float(np.linalg.norm(other.t - self.t)) + reach * turn
+        """The farthest any point within `reach` of the local origin moves from this pose to `other`
+        (`displacements` of one pair)."""
+        return float(displacements(self.t[None], self.R[None], other.t[None], other.R[None], np.array([reach]))[0])
 
     def between(self, other: Pose, fraction: float) -> Pose:
         """The pose a `fraction` of the way from this one to `other`: translation on the line,
@@ -111,6 +107,23 @@ class Pose:
             turn = (b - a + np.pi) % (2 * np.pi) - np.pi
             return Pose.from_xytheta(t[0], t[1], a + fraction * turn)
         return Pose.from_quaternion(t, slerp(self.as_quaternion(), other.as_quaternion(), fraction))
+
+
+def displacements(t0: np.ndarray, R0: np.ndarray, t1: np.ndarray, R1: np.ndarray, reach) -> np.ndarray:
+    """(n,) the farthest any point within `reach` of the local origin moves from pose (R0, t0) to
+    (R1, t1), for (n, d) translations and (n, d, d) rotations: |t1 - t0| + reach ||R1 - R0||_2, where
+    ||R1 - R0||_2 = 2 sin(phi / 2) for the angle phi of R0^T R1 (reached in 2D, where every point
+    turns by phi). phi by atan2 of its sine and cosine: arccos of the cosine loses half the digits of
+    a small turn."""
+    d = t0.shape[1]
+    M = np.einsum("nji,njk->nik", R0, R1)  # R0^T R1: trace 2 cos + (d - 2), M - M^T carries sin
+    cos = (np.trace(M, axis1=1, axis2=2) - (d - 2)) / 2
+    skew = M - M.transpose(0, 2, 1)
+    if d == 2:
+        sin = np.abs(skew[:, 1, 0]) / 2
+    else:
+        sin = np.sqrt(skew[:, 2, 1] ** 2 + skew[:, 0, 2] ** 2 + skew[:, 1, 0] ** 2) / 2
+    return np.linalg.norm(t1 - t0, axis=1) + reach * 2 * np.sin(np.arctan2(sin, cos) / 2)
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, fraction: float) -> np.ndarray:

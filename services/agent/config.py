@@ -36,7 +36,7 @@ class AgentConfig:
     # lost them (a fresh data directory, a restored backup) gets them again; 0: forget at once.
     keep_acked_mb: float = 256.0
     # m: a node's corrected pose goes out only once some beam end of its scan would move by more than
-    # this from the pose the server holds (|dt| + reach * turn; services/agent/sent_poses.py). 1 cm is
+    # this from the pose the server holds (|dt| + reach * |dR|; services/agent/sent_poses.py). 1 cm is
     # a fifth of the finest 5 cm map cell; over an hour of the office sim (beams reach 21 m) it sends
     # 4.2 poses per scan where 1 mm / 1 mrad sent 5.5: with protocol v3, 6.4 % of the scan payload
     # against 17.6 % (bench/pose_budget.py, docs/BENCHMARKS.md). 0: every change goes out.

@@ -3,7 +3,8 @@ the map: the agent's side of bounded pose-graph cost over a shift (issue 16).
 
 A node's pose as the server holds it is the scan's own pose until a correction was sent for it,
 then the last correction sent. A new pose `(R1, t1)` against the held `(R0, t0)` moves a point `p`
-of the scan (sensor frame) by `|(t1 - t0) + (R1 - R0) p| <= |t1 - t0| + |p| * angle(R0^T R1)`: with
+of the scan (sensor frame) by `|(t1 - t0) + (R1 - R0) p| <= |t1 - t0| + |p| ||R1 - R0||`
+(gmm_core.pose.displacements): with
 `reach`, the node's farthest beam end from its sensor, the bound is what a correction can move any
 cell the scan touched, and one below the tolerance is not worth its bytes.
 
@@ -23,6 +24,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from gmm_core import Pose
+from gmm_core.pose import displacements
 
 
 def beam_reach(hits: np.ndarray, no_return: np.ndarray, max_range: float) -> float:
@@ -32,20 +34,6 @@ def beam_reach(hits: np.ndarray, no_return: np.ndarray, max_range: float) -> flo
     if len(no_return):
         ends.append(float(np.linalg.norm(no_return, axis=1).max()) * max_range)
     return float(max(ends))
-
-
-def displacement(t0: np.ndarray, R0: np.ndarray, t1: np.ndarray, R1: np.ndarray, reach: np.ndarray) -> np.ndarray:
-    """(n,) |t1 - t0| + reach * angle(R0^T R1), for (n, d) translations and (n, d, d) rotations."""
-    d = t0.shape[1]
-    M = np.einsum("nji,njk->nik", R0, R1)  # R0^T R1: trace 2 cos + (d - 2), M - M^T carries sin
-    cos = (np.trace(M, axis1=1, axis2=2) - (d - 2)) / 2
-    skew = M - M.transpose(0, 2, 1)
-    if d == 2:
-        sin = np.abs(skew[:, 1, 0]) / 2
-    else:
-        sin = np.sqrt(skew[:, 2, 1] ** 2 + skew[:, 0, 2] ** 2 + skew[:, 1, 0] ** 2) / 2
-    angle = np.arctan2(sin, cos)  # not arccos(cos): that loses half the digits of a small turn
-    return np.linalg.norm(t1 - t0, axis=1) + reach * angle
 
 
 class SentPoses:
@@ -93,7 +81,7 @@ class SentPoses:
             raise ValueError(f"poses: {t1.shape[1]}D, the nodes sent were {d}D")
         R0 = held[:, d : d + d * d].reshape(-1, d, d)
         far = np.ones(len(nodes), dtype=bool)  # unknown nodes, and NaN reach (the comparison is False)
-        far[known] = ~(displacement(held[:, :d], R0, t1, R1, held[:, -1]) <= tolerance)
+        far[known] = ~(displacements(held[:, :d], R0, t1, R1, held[:, -1]) <= tolerance)
         return {node: poses[node] for node, f in zip(nodes, far) if f}
 
     def _set(self, node: int, pose: Pose, reach: float) -> None:

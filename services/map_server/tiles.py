@@ -27,11 +27,13 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from itertools import compress
 
 import numpy as np
 
 from gmm_core import Grid
 from gmm_core.occupancy import map_estimate
+from gmm_core.pose import displacements
 
 from .nodes import NodeKey, NodeStore, Posed
 from .tracers import TracerPool, TracersSaturated, TracingStopped
@@ -300,19 +302,27 @@ class TileCache:
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
         held = tile.held
-        tolerance = REPOSE_CELLS * tile.grid.resolution
-        moved, new = {}, []
-        for k, now in changed.items():
-            was = held.get(k)
-            if was is None:
-                if now is not None:
-                    new.append(now)
-            elif now is None:
-                moved[k] = was
-            elif now.stamp != was.stamp and was.pose.displacement(now.pose, now.node.reach) > tolerance:
-                moved[k] = was
-                new.append(now)
-            # else: it stays counted at the pose held, within `tolerance` of where it stands now
+        moved = {k: held[k] for k, now in changed.items() if now is None and k in held}  # it left the tile
+        new = [now for k, now in changed.items() if now is not None and k not in held]
+        reposed = [
+            (held[k], now) for k, now in changed.items() if now is not None and k in held and now.stamp != held[k].stamp
+        ]
+        if reposed:  # traced again only when some ray end moved over REPOSE_CELLS of a cell
+            was, now = zip(*reposed)
+            far = (
+                displacements(
+                    np.array([p.pose.t for p in was]),
+                    np.array([p.pose.R for p in was]),
+                    np.array([p.pose.t for p in now]),
+                    np.array([p.pose.R for p in now]),
+                    np.array([p.node.reach for p in now]),
+                )
+                > REPOSE_CELLS * tile.grid.resolution
+            )
+            for before, after in compress(reposed, far):
+                moved[before.key] = before
+                new.append(after)
+            # the others stay counted at the pose held, within the tolerance of where they stand now
         if not (new or moved):
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of

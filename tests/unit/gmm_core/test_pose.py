@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from gmm_core.pose import Pose, poses_from_arrays, slerp
+from gmm_core.pose import Pose, displacements, poses_from_arrays, slerp
+from support.fuzz import random_rotations
 
 
 def test_slerp_closed_form_and_short_way():
@@ -87,3 +88,32 @@ def test_displacement_bounds_how_far_points_within_reach_move_and_is_reached(dim
             assert moved.max() >= 0.999 * bound
     same = Pose.from_xytheta(1.0, 2.0, 0.3) if dim == 2 else Pose.from_quaternion([1, 2, 3], [1, 0.2, 0, 0])
     assert same.displacement(same, 100.0) == pytest.approx(0.0, abs=1e-6)
+
+
+def reference(a: Pose, b: Pose, reach: float) -> float:
+    turn = a.R.T @ b.R
+    if a.dim == 2:
+        turn = np.block([[turn, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]])
+    return float(np.linalg.norm(b.t - a.t)) + reach * 2 * np.sin(float(Rotation.from_matrix(turn).magnitude()) / 2)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_displacements_match_a_pose_by_pose_reference_by_scipy(dim):
+    rng = np.random.default_rng(dim)
+    n = 500
+    R0 = random_rotations(rng, n, dim)
+    small = random_rotations(rng, n, dim)  # turned by up to a few mrad from R0, or anything
+    steps = rng.choice([1e-4, 1e-3, 1e-2, 1.0], n)
+    if dim == 2:
+        theta = rng.normal(0.0, 1.0, n) * steps
+        small = np.stack([np.stack([np.cos(theta), -np.sin(theta)], 1), np.stack([np.sin(theta), np.cos(theta)], 1)], 1)
+    else:
+        axis = rng.normal(size=(n, 3))
+        small = np.array([Pose.from_quaternion(np.zeros(3), [1.0, *(a * s)]).R for a, s in zip(axis, steps)])
+    R1 = R0 @ small
+    t0, t1 = rng.normal(0, 20, (n, dim)), rng.normal(0, 20, (n, dim)) * steps[:, None]
+    t1 += t0
+    reach = rng.uniform(0, 30, n)
+    got = displacements(t0, R0, t1, R1, reach)
+    want = [reference(Pose(a, x), Pose(b, y), r) for a, x, b, y, r in zip(R0, t0, R1, t1, reach)]
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
