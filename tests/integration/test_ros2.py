@@ -1,0 +1,157 @@
+"""ROS 2 over Zenoh without ROS: the Intel log played as a robot's ROS 2 topics (rosbags CDR, real
+Zenoh keys of rmw_zenoh or zenoh-bridge-ros2dds) through a `gmmap router` into `gmmap agent
+--source ros2`, stored by a map server; its map against `gmmap replay` of the same messages."""
+
+from __future__ import annotations
+
+import io
+import json
+import signal
+
+import numpy as np
+import pytest
+import zenoh
+
+from gmm_core import Grid, Pose
+from gmm_core.occupancy import classify, map_estimate
+from gmm_core.reconstruct import reconstruct
+from gmm_core.sampling import scan_seed
+from protocol import ScanMessage, decode
+from services.cli import main
+from services.map_server.store import read_graph
+from services.zenoh_config import zenoh_config
+from support.net import free_port, http_get, wait_for
+from support.processes import EVERY_SCAN, store_db, stored_nodes
+from support.ros2_robot import MOUNT, RosRobot, intel_topics, laser_3d
+from support.rosbags_written import ODOMETRY, write_bag
+
+SCANS = 60
+RESOLUTION = 0.1
+CLASS_AGREEMENT = 0.97  # of cells, served against an offline replay with other Monte-Carlo seeds
+
+
+@pytest.fixture(scope="module")
+def intel(data_dir):
+    return intel_topics(data_dir, SCANS)
+
+
+def grid_of(intel) -> Grid:
+    """The 10 cm grid over every laser position, odometry or corrected, and 10 m (the fit's max range) around."""
+    positions = np.concatenate([intel.odometry[:, :2], intel.corrected[:, :2]])
+    return Grid.from_bbox(np.floor(positions.min(axis=0) - 10.5), np.ceil(positions.max(axis=0) + 10.5), RESOLUTION)
+
+
+def served(hport: int, grid: Grid) -> np.ndarray:
+    bbox = ",".join(repr(float(v)) for v in (*grid.origin, *grid.upper))
+    return np.load(io.BytesIO(http_get(hport, f"/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy")))
+
+
+def stored_map(data, grid: Grid, poses: dict[int, Pose] | None = None) -> np.ndarray:
+    """The offline reconstruction of the stored models, at their stored (or `poses`) poses, with the
+    server's seeds: what the server must serve, bit for bit."""
+    with store_db(data) as db:
+        messages = {n: decode(raw, expect=ScanMessage) for n, raw in db.execute("SELECT node, raw FROM scans")}
+    items = [(m.model, (poses or {}).get(n, m.pose), scan_seed("ros", n)) for n, m in sorted(messages.items())]
+    hits, misses = reconstruct(grid, items, samples_per_cell=4.0)
+    return map_estimate(hits, misses, 0.2)
+
+
+def replayed(tmp_path, name: str, intel, poses: np.ndarray, grid: Grid) -> np.ndarray:
+    """`gmmap replay` of a ROS 2 bag of the same scans and /tf_static with odometry at `poses`."""
+    from support.rosbags_written import RosMessages
+
+    m = RosMessages("sqlite3")
+    messages = [intel.static]
+    for (_, scan), (x, y, theta), stamp in zip(intel.steps, poses, intel.stamps):
+        body = laser_3d(x, y, theta).compose(MOUNT.inverse())
+        messages += [("/odom", ODOMETRY, stamp, m.odometry(float(stamp), "odom", "base_link", body)), scan]
+    bag = write_bag(tmp_path / name, "sqlite3", sorted(messages, key=lambda msg: msg[2]))
+    out = tmp_path / f"{name}.npz"
+    bbox = ",".join(repr(float(v)) for v in (*grid.origin, *grid.upper))
+    args = [str(bag), "--scan-topic", "/scan", "--pose-topic", "/odom", "--bbox=" + bbox, "--resolution"]
+    assert main(["replay", *args, str(RESOLUTION), *EVERY_SCAN, "--out", str(out)]) == 0
+    return np.load(out)["prob"]
+
+
+def assert_near(xytheta: np.ndarray, expected: np.ndarray, atol: float) -> None:
+    """Same position and heading (angles compared modulo 2 pi)."""
+    np.testing.assert_allclose(xytheta[:2], expected[:2], atol=atol)
+    assert abs(np.angle(np.exp(1j * (xytheta[2] - expected[2])))) <= atol, (xytheta, expected)
+
+
+def agreement(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean(classify(a, 0.09) == classify(b, 0.09)))
+
+
+@pytest.mark.parametrize("mapping", ["rmw_zenoh", "bridge"])
+def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapping, tmp_path):
+    rport, hport, data = free_port(), free_port(), tmp_path / "data"
+    router = f"tcp/127.0.0.1:{rport}"
+    procs.ready(procs.start("router", "router", "--listen", router), "gmmap router ready")
+    procs.server("server", data, None, hport, "--zenoh-connect", router)
+    ros_args = ["--scan-topic", "/scan", "--odom-topic", "/odom", "--path-topic", "/slam/path"]
+    agent = procs.start(
+        "agent",
+        "agent",
+        "--robot",
+        "ros",
+        "--zenoh-connect",
+        router,
+        "--source",
+        "ros2",
+        *ros_args,
+        "--ros-mapping",
+        mapping,
+        "--outbox",
+        str(tmp_path / "outbox.db"),
+        "--timeout",
+        "30",
+        *EVERY_SCAN,
+    )
+    procs.ready(agent, "ros2 ready")
+    session = zenoh.open(zenoh_config("client", connect=[router]))
+    robot = RosRobot(session, mapping)
+    try:
+        robot.publish(*intel.static[:2], intel.static[3])
+        for step in intel.steps:
+            for topic, msgtype, _, message in step:
+                robot.publish(topic, msgtype, message)
+        wait_for(lambda: stored_nodes(data, "ros") == set(range(SCANS)), 60, f"{SCANS} stored nodes")
+        grid = grid_of(intel)
+        odometry_map = served(hport, grid)
+
+        # each node at the laser's odometry pose, through Odometry of base_link and the /tf_static mount
+        with store_db(data) as db:
+            for node, raw in db.execute("SELECT node, raw FROM scans"):
+                pose = decode(raw, expect=ScanMessage).pose.as_xytheta()
+                assert_near(pose, intel.odometry[node], 1e-4)
+        assert np.array_equal(odometry_map, stored_map(data, grid))
+        assert agreement(odometry_map, replayed(tmp_path, "odometry", intel, intel.odometry, grid)) >= CLASS_AGREEMENT
+
+        robot.publish(*intel.path[:2], intel.path[3])
+        wait_for(
+            lambda: (
+                {r["robot"]: r["pose_revision"] for r in json.loads(http_get(hport, "/v1/robots"))}.get("ros", -1) >= 0
+            ),
+            30,
+            "the pose-graph update",
+        )
+        with store_db(data) as db:
+            graph = read_graph(db, "default", "ros")
+        corrected_poses = {n: graph.pose(n) for n in range(SCANS)}
+        for node, pose in corrected_poses.items():
+            assert_near(pose.as_xytheta(), intel.corrected[node], 1e-6)
+        corrected_map = served(hport, grid)
+        assert np.array_equal(corrected_map, stored_map(data, grid, corrected_poses))
+        corrected_replay = replayed(tmp_path, "corrected", intel, intel.corrected, grid)
+        agree, before = agreement(corrected_map, corrected_replay), agreement(odometry_map, corrected_replay)
+        print(f"{mapping}: classes as the corrected replay's: {agree:.4f} (before the Path: {before:.4f})")
+        assert agree >= CLASS_AGREEMENT
+        assert before < agree - 0.01
+    finally:
+        robot.close()
+        session.close()
+    agent.send_signal(signal.SIGINT)
+    assert procs.finish(agent, 60) == 0, procs.log(agent)
+    log = procs.log(agent)
+    assert f"{2 * SCANS + 2} samples, {SCANS} nodes, 1 pose-graph updates; 0 scans dropped" in log, log
