@@ -167,7 +167,7 @@ def cmd_server(args) -> int:
 
     _logging(args.verbose)
     config = resolve_config(args)
-    code = run_server(config.server, config.reconstruction)
+    code = run_server(config.server, config.reconstruction, config.ros2)
     # The store is closed and every Ack sent: a worker thread still rendering a large PNG for a
     # client that will get no answer must not keep the process from exiting (SIGTERM within seconds).
     sys.stdout.flush()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from services.map_server.store import read_graph
 from services.zenoh_config import zenoh_config
 from support.net import free_port, http_get, wait_for
 from support.processes import EVERY_SCAN, store_db, stored_nodes
-from support.ros2_robot import MOUNT, RosRobot, intel_topics, laser_3d
+from support.ros2_robot import MOUNT, OCCUPANCY_GRID, PATH, MapSubscriber, RosRobot, intel_topics, laser_3d
 from support.rosbags_written import ODOMETRY, write_bag
 
 SCANS = 60
@@ -73,6 +74,16 @@ def replayed(tmp_path, name: str, intel, poses: np.ndarray, grid: Grid) -> np.nd
     return np.load(out)["prob"]
 
 
+def occupancy_grid(message) -> tuple[Grid, np.ndarray]:
+    """The grid an OccupancyGrid covers (resolution as the server was given it, 0.1 m: the message
+    holds it as float32) and its cells [iy, ix]."""
+    info = message.info
+    assert abs(info.resolution - RESOLUTION) < 1e-7
+    origin = np.array([info.origin.position.x, info.origin.position.y])
+    grid = Grid.from_bbox(origin, origin + np.array([info.width, info.height]) * RESOLUTION, RESOLUTION)
+    return grid, np.asarray(message.data, dtype=np.int8).reshape(info.height, info.width)
+
+
 def assert_near(xytheta: np.ndarray, expected: np.ndarray, atol: float) -> None:
     """Same position and heading (angles compared modulo 2 pi)."""
     np.testing.assert_allclose(xytheta[:2], expected[:2], atol=atol)
@@ -88,7 +99,8 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
     rport, hport, data = free_port(), free_port(), tmp_path / "data"
     router = f"tcp/127.0.0.1:{rport}"
     procs.ready(procs.start("router", "router", "--listen", router), "gmmap router ready")
-    procs.server("server", data, None, hport, "--zenoh-connect", router)
+    ros_map = ["--ros-map", "/map", "--ros-map-period", "0.5", "--ros-mapping", mapping]
+    procs.server("server", data, None, hport, "--zenoh-connect", router, *ros_map)
     ros_args = ["--scan-topic", "/scan", "--odom-topic", "/odom", "--path-topic", "/slam/path"]
     agent = procs.start(
         "agent",
@@ -111,6 +123,10 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
     procs.ready(agent, "ros2 ready")
     session = zenoh.open(zenoh_config("client", connect=[router]))
     robot = RosRobot(session, mapping)
+    grids, paths = (
+        MapSubscriber(session, mapping, "/map", OCCUPANCY_GRID),
+        MapSubscriber(session, mapping, "/ros/trajectory", PATH),
+    )
     try:
         robot.publish(*intel.static[:2], intel.static[3])
         for step in intel.steps:
@@ -136,6 +152,7 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
             30,
             "the pose-graph update",
         )
+        revised = time.time()
         with store_db(data) as db:
             graph = read_graph(db, "default", "ros")
         corrected_poses = {n: graph.pose(n) for n in range(SCANS)}
@@ -143,6 +160,34 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
             assert_near(pose.as_xytheta(), intel.corrected[node], 1e-6)
         corrected_map = served(hport, grid)
         assert np.array_equal(corrected_map, stored_map(data, grid, corrected_poses))
+        # /map: the grid the server publishes after the update, decoded by rosbags, as the HTTP tile
+        grid_message = grids.settled(after=revised)
+        assert grid_message.header.frame_id == "map"
+        ros_grid, cells = occupancy_grid(grid_message)
+        tile = served(hport, ros_grid)
+        assert cells.shape == tile.shape and ros_grid.shape[0] == grid_message.info.width
+        assert np.array_equal(cells, np.where(tile == 0.5, -1, np.rint(tile * 100)).astype(np.int8))
+        assert (cells == -1).mean() < 0.9 and (cells > 65).sum() > 100  # walls and free space, not all unknown
+        trajectory = paths.settled(after=revised)
+        assert len(trajectory.poses) == SCANS
+        for k, stamped in enumerate(trajectory.poses):
+            p, q = stamped.pose.position, stamped.pose.orientation
+            assert_near(np.array([p.x, p.y, 2 * np.arctan2(q.z, q.w)]), intel.corrected[k], 1e-5)
+        if mapping == "rmw_zenoh":  # the agent and the server in the ROS graph (`ros2 node list`, `ros2 topic info`)
+            tokens = {str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**") if r.ok is not None}
+            entities = {tuple(t.split("/")[5:10]) for t in tokens}
+            assert ("NN", "%", "%", "gmmap_agent_ros") in {e[:4] for e in entities}, tokens
+            for topic, dds in (
+                ("%scan", "sensor_msgs::msg::dds_::LaserScan_"),
+                ("%slam%path", "nav_msgs::msg::dds_::Path_"),
+            ):
+                assert ("MS", "%", "%", "gmmap_agent_ros", topic) in entities, tokens
+                assert any(f"/{topic}/{dds}/RIHS01_" in t for t in tokens), tokens
+            assert ("MP", "%", "%", "gmmap_server_default", "%map") in entities, tokens
+        # a late joiner gets the last grid from the publisher's cache (transient local)
+        late = MapSubscriber(session, mapping, "/map", OCCUPANCY_GRID)
+        assert np.array_equal(occupancy_grid(late.settled(after=0.0))[1], cells)
+
         corrected_replay = replayed(tmp_path, "corrected", intel, intel.corrected, grid)
         agree, before = agreement(corrected_map, corrected_replay), agreement(odometry_map, corrected_replay)
         print(f"{mapping}: classes as the corrected replay's: {agree:.4f} (before the Path: {before:.4f})")

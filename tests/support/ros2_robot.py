@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import zenoh
+import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
 
 from gmm_core import Pose
@@ -23,6 +24,7 @@ from support.net import wait_for
 from support.rosbags_written import LASER_SCAN, ODOMETRY, PATH, TF, RosMessages
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 # the laser ahead of and left of the robot body, 30 cm up, turned 1.5 degrees
 MOUNT = Pose.from_quaternion([0.12, 0.05, 0.3], [np.cos(np.radians(0.75)), 0, 0, np.sin(np.radians(0.75))])
 
@@ -70,6 +72,46 @@ class RosRobot:
     def close(self) -> None:
         for publisher in self._publishers.values():
             publisher.undeclare()
+
+
+class MapSubscriber:
+    """What a ROS 2 subscriber of `topic` receives: rosbags decodes each sample, the rmw attachment
+    is checked; history from the publisher's cache for a late joiner (transient local)."""
+
+    def __init__(self, session: zenoh.Session, mapping: str, topic: str, msgtype: str):
+        key = f"0/{topic.strip('/')}/*/*" if mapping == "rmw_zenoh" else topic.strip("/")
+        self.mapping, self.msgtype = mapping, msgtype
+        self.received: list[tuple[float, object]] = []
+        self.errors: list[Exception] = []
+        self.subscriber = zenoh.ext.declare_advanced_subscriber(
+            session, key, self._on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:  # an exception here would only be logged by Zenoh: kept for `settled` to raise
+            if self.mapping == "rmw_zenoh":
+                assert str(sample.key_expr) == rmw_zenoh_key(self.topic_of(sample), self.msgtype), sample.key_expr
+                sequence, stamp, length, _ = struct.unpack("<qqB16s", sample.attachment.to_bytes())
+                assert sequence > 0 and length == 16 and abs(stamp / 1e9 - time.time()) < 60, (sequence, stamp)
+            self.received.append((time.time(), JAZZY.deserialize_cdr(sample.payload.to_bytes(), self.msgtype)))
+        except Exception as error:  # noqa: BLE001
+            self.errors.append(error)
+
+    @staticmethod
+    def topic_of(sample: zenoh.Sample) -> str:
+        return "/" + "/".join(str(sample.key_expr).split("/")[1:-2])
+
+    def settled(self, after: float, quiet: float = 1.5, timeout: float = 30.0):
+        """The last message, once one arrived after time.time() `after` and none for `quiet` s."""
+
+        def last():
+            if self.errors:
+                raise self.errors[0]
+            if not self.received or self.received[-1][0] < after or time.time() - self.received[-1][0] < quiet:
+                return None
+            return self.received[-1][1]
+
+        return wait_for(last, timeout, f"a settled {self.msgtype}")
 
 
 @dataclass(frozen=True)
