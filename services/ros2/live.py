@@ -1,7 +1,8 @@
 """`gmmap agent --source ros2`: a robot's live ROS 2 topics over Zenoh, fitted and sent as nodes.
 
 Subscribes (in the layout of `ros2.mapping`, names.py) to the scan topic (sensor_msgs/LaserScan
-or PointCloud2), the poses (/tf and /tf_static, or `ros2.odom_topic`) and optionally a SLAM back
+or PointCloud2), the poses (tf and tf_static, under `ros2.namespace` as multi-robot set-ups remap
+them, or `ros2.odom_topic`) and optionally a SLAM back
 end's nav_msgs/Path (`ros2.path_topic`). Samples are queued by Zenoh's threads and handled in
 order by one thread, which:
 - converts a scan as the rosbag reader does (ros_messages: REP 117 for LaserScan) and holds it
@@ -104,10 +105,11 @@ class LiveSource:
         self._scans_queued = 0
         self._lock = threading.Lock()
         self.latencies: list[float] = []  # s from a scan's arrival to its node in the outbox
-        # with odometry, /tf_static alone mounts the sensor on the odometry's child frame
-        topics = {"scan": (scan_topic, SCAN_TYPES), "tf_static": ("/tf_static", (TF,))}
+        # tf and tf_static are relative, as multi-robot set-ups remap them (Nav2: /tf:=tf): /tf without a
+        # namespace. With odometry, tf_static alone mounts the sensor on the odometry's child frame.
+        topics = {"scan": (scan_topic, SCAN_TYPES), "tf_static": ("tf_static", (TF,))}
         if ros.odom_topic is None:
-            topics["tf"] = ("/tf", (TF,))
+            topics["tf"] = ("tf", (TF,))
         else:
             topics["odom"] = (ros.odom_topic, POSE_TYPES)
         if ros.path_topic is not None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import signal
 import time
 
@@ -22,6 +23,7 @@ from services.cli import main
 from services.map_server.store import read_graph
 from services.zenoh_config import zenoh_config
 from support.net import free_port, http_get, wait_for
+from support.paths import ROOT
 from support.processes import EVERY_SCAN, store_db, stored_nodes
 from support.ros2_robot import MOUNT, OCCUPANCY_GRID, PATH, MapSubscriber, RosRobot, intel_topics, laser_3d
 from support.rosbags_written import ODOMETRY, write_bag
@@ -200,3 +202,72 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
     assert procs.finish(agent, 60) == 0, procs.log(agent)
     log = procs.log(agent)
     assert f"{2 * SCANS + 2} samples, {SCANS} nodes, 1 pose-graph updates; 0 scans dropped" in log, log
+
+
+def test_a_secured_router_passes_each_robots_ros_topics_and_the_map_and_no_forgery(procs, intel, tmp_path):
+    """docs/security/router-ros2.json5 as shipped: robot a's ROS topics (namespace /a) reach its agent,
+    a's puts on b's topics reach nobody, both robots read /map and see a's agent in the graph."""
+    shutil.copytree(ROOT / "docs" / "security", tmp_path / "docs" / "security")
+    security = tmp_path / "docs" / "security"
+    rport, hport, data = free_port(), free_port(), tmp_path / "data"
+    router = f"tcp/127.0.0.1:{rport}"
+    config = ["--zenoh-config", "docs/security/router-ros2.json5"]
+    procs.ready(procs.start("router", "router", "--listen", router, *config), "gmmap router ready")
+    server_config = ("--zenoh-config", "docs/security/server-via-router.json5")
+    procs.server("server", data, None, hport, "--zenoh-connect", router, *server_config, "--ros-map", "/map")
+    agents = {}
+    for robot in ("a", "b"):
+        agents[robot] = procs.start(
+            f"agent-{robot}",
+            "agent",
+            "--robot",
+            robot,
+            "--zenoh-connect",
+            router,
+            "--zenoh-config",
+            f"docs/security/robot-{robot}.json5",
+            "--source",
+            "ros2",
+            "--ros-namespace",
+            f"/{robot}",
+            "--scan-topic",
+            "scan",
+            "--odom-topic",
+            "odom",
+            "--outbox",
+            str(tmp_path / f"outbox-{robot}.db"),
+            "--timeout",
+            "30",
+            *EVERY_SCAN,
+        )
+        procs.ready(agents[robot], "ros2 ready")
+    sessions = {
+        r: zenoh.open(zenoh_config("client", connect=[router], config_file=str(security / f"robot-{r}.json5")))
+        for r in ("a", "b")
+    }
+    robot = RosRobot(sessions["a"], "rmw_zenoh")
+    grids = MapSubscriber(sessions["b"], "rmw_zenoh", "/map", OCCUPANCY_GRID)
+    try:
+        robot.publish("/a/tf_static", intel.static[1], intel.static[3])
+        for step in intel.steps[:20]:
+            for topic, msgtype, _, message in step:
+                robot.publish(f"/a{topic}", msgtype, message)
+                # the same bytes on robot b's keys: dropped by the router
+                forged = bytes(robot.store.serialize_cdr(message, msgtype))
+                sessions["a"].put(robot.key(f"/b{topic}", msgtype), forged)
+        wait_for(lambda: stored_nodes(data, "a") == set(range(20)), 60, "robot a's 20 nodes")
+        grid = grids.settled(after=0.0)
+        assert (np.asarray(grid.data) > 65).sum() > 10
+        tokens = {str(r.ok.key_expr) for r in sessions["b"].liveliness().get("@ros2_lv/0/**") if r.ok is not None}
+        assert any(t.endswith("/NN/%/%a/gmmap_agent_a") for t in tokens), tokens
+        assert any("/MP/%/%/gmmap_server_default/%map/" in t for t in tokens), tokens
+    finally:
+        robot.close()
+        for s in sessions.values():
+            s.close()
+    for agent in agents.values():
+        agent.send_signal(signal.SIGINT)
+        assert procs.finish(agent, 60) == 0, procs.log(agent)
+    assert "ros2 stopped: 41 samples, 20 nodes" in procs.log(agents["a"]), procs.log(agents["a"])
+    assert "ros2 stopped: 0 samples, 0 nodes" in procs.log(agents["b"]), procs.log(agents["b"])
+    assert stored_nodes(data, "b") == set()
