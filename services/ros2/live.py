@@ -25,7 +25,6 @@ import queue
 import signal
 import sys
 import threading
-import time
 from collections import Counter, deque
 from dataclasses import dataclass
 
@@ -80,7 +79,6 @@ class HeldScan:
     planar: bool  # a LaserScan: posed in the plane
     hits: np.ndarray
     no_return: np.ndarray
-    received: float  # time.time() it arrived
 
 
 @dataclass(frozen=True)
@@ -104,7 +102,6 @@ class LiveSource:
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._scans_queued = 0
         self._lock = threading.Lock()
-        self.latencies: list[float] = []  # s from a scan's arrival to its node in the outbox
         # tf and tf_static are relative, as multi-robot set-ups remap them (Nav2: /tf:=tf): /tf without a
         # namespace. With odometry, tf_static alone mounts the sensor on the odometry's child frame.
         topics = {"scan": (scan_topic, SCAN_TYPES), "tf_static": ("tf_static", (TF,))}
@@ -151,7 +148,7 @@ class LiveSource:
                     self.counts["dropped_behind"] += 1
                     return
                 self._scans_queued += 1
-        self._inbox.put((role, str(sample.key_expr), sample.payload.to_bytes(), attachment, time.time()))
+        self._inbox.put((role, str(sample.key_expr), sample.payload.to_bytes(), attachment))
 
     # -- the handling thread ---------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -162,7 +159,7 @@ class LiveSource:
                 continue
             self.handle(*item)
 
-    def handle(self, role: str, key: str, payload: bytes, attachment: bytes | None, received: float) -> None:
+    def handle(self, role: str, key: str, payload: bytes, attachment: bytes | None) -> None:
         if role == "scan":
             with self._lock:
                 self._scans_queued -= 1
@@ -173,7 +170,7 @@ class LiveSource:
                 wire.Attachment.decode(attachment)
             msgtype, msg = self._decode(keys, types, key, payload)
             if role == "scan":
-                self._scan(msgtype, msg, received)
+                self._scan(msgtype, msg)
             elif role in ("tf", "tf_static"):
                 self.poses.add_tf(msg, static=role == "tf_static")
             elif role == "odom":
@@ -201,7 +198,7 @@ class LiveSource:
                 error = e
         raise error
 
-    def _scan(self, msgtype: str, msg, received: float) -> None:
+    def _scan(self, msgtype: str, msg) -> None:
         if self._scan_type is None and self.ros.mapping == "rmw_zenoh":
             self._declare_subscription(self.topics["scan"][0].name, msgtype, SUBSCRIPTION_QOS)
         self._scan_type = msgtype
@@ -210,7 +207,7 @@ class LiveSource:
             hits, no_return = laser_scan_beams(msg)
         else:
             hits, no_return = split_points(point_cloud_xyz(msg), 0.0, None)
-        self._held.append(HeldScan(stamp, frame, msgtype == LASER_SCAN, hits, no_return, received))
+        self._held.append(HeldScan(stamp, frame, msgtype == LASER_SCAN, hits, no_return))
         while len(self._held) > self.ros.hold_scans:
             self._held.popleft()
             self.counts["dropped_unposed"] += 1
@@ -236,7 +233,6 @@ class LiveSource:
             if node is not None:
                 self._nodes[node] = NodeRecord(scan.stamp, mount, scan.planar)
                 self.counts["nodes"] += 1
-                self.latencies.append(time.time() - scan.received)
 
     def _correct(self, msg) -> None:
         """A SLAM back end's Path: the nodes whose stamps it has, re-posed (only what moved is sent)."""

@@ -123,8 +123,6 @@ class RosMapPublisher:
         self._grid_publisher = zenoh.ext.declare_advanced_publisher(
             session, key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True
         )
-        self.published = 0  # grids
-        self.last_grid: Grid | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="gmmap-ros-map", daemon=True)
         self._thread.start()
@@ -183,8 +181,6 @@ class RosMapPublisher:
         message = t[OCCUPANCY_GRID](header=header, info=info, data=grid_cells(prob))
         payload = wire.encode(message, OCCUPANCY_GRID, ros.distro)
         self._grid_publisher.put(payload, attachment=self._attachment(self._grid_gid))
-        self.published += 1
-        self.last_grid = grid
 
     def publish_trajectories(self) -> None:
         t, now = self.store.types, time.time()

@@ -24,9 +24,9 @@ ADMIN_SPACE = "@ros2_lv"
 HASH_WILDCARD = "*"
 
 # rmw_zenoh's QoS defaults, left out of a token's QoS chunk (rmw/types.h enum values)
-RELIABLE, BEST_EFFORT = 1, 2
+RELIABLE = 1
 TRANSIENT_LOCAL, VOLATILE = 1, 2
-KEEP_LAST, KEEP_ALL = 1, 2
+KEEP_LAST = 1
 _DEFAULT_QOS = (RELIABLE, VOLATILE, KEEP_LAST, 42)
 
 

@@ -24,7 +24,7 @@ from services.map_server.store import read_graph
 from services.zenoh_config import zenoh_config
 from support.net import free_port, http_get, wait_for
 from support.paths import ROOT
-from support.processes import EVERY_SCAN, store_db, stored_nodes
+from support.processes import EVERY_SCAN, store_db, stored_nodes, written_nodes
 from support.ros2_robot import MOUNT, OCCUPANCY_GRID, PATH, MapSubscriber, RosRobot, intel_topics, laser_3d
 from support.rosbags_written import ODOMETRY, write_bag
 
@@ -271,3 +271,43 @@ def test_a_secured_router_passes_each_robots_ros_topics_and_the_map_and_no_forge
     assert "ros2 stopped: 41 samples, 20 nodes" in procs.log(agents["a"]), procs.log(agents["a"])
     assert "ros2 stopped: 0 samples, 0 nodes" in procs.log(agents["b"]), procs.log(agents["b"])
     assert stored_nodes(data, "b") == set()
+
+
+def test_without_a_server_the_agent_stops_with_1_and_what_it_holds(procs, intel, tmp_path):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    procs.ready(procs.start("router", "router", "--listen", router), "gmmap router ready")
+    outbox = tmp_path / "outbox.db"
+    agent = procs.start(
+        "agent",
+        "agent",
+        "--robot",
+        "ros",
+        "--zenoh-connect",
+        router,
+        "--source",
+        "ros2",
+        "--scan-topic",
+        "/scan",
+        "--odom-topic",
+        "/odom",
+        "--outbox",
+        str(outbox),
+        "--timeout",
+        "2",
+        *EVERY_SCAN,
+    )
+    procs.ready(agent, "ros2 ready")
+    session = zenoh.open(zenoh_config("client", connect=[router]))
+    robot = RosRobot(session, "rmw_zenoh")
+    try:
+        robot.publish(*intel.static[:2], intel.static[3])
+        for step in intel.steps[:3]:
+            for topic, msgtype, _, message in step:
+                robot.publish(topic, msgtype, message)
+        wait_for(lambda: len(written_nodes(outbox)) == 3, 30, "3 scans in the outbox")
+    finally:
+        robot.close()
+        session.close()
+    agent.send_signal(signal.SIGTERM)
+    assert procs.finish(agent, 60) == 1, procs.log(agent)
+    assert "3 messages not acknowledged after 2 s" in procs.log(agent), procs.log(agent)

@@ -4,7 +4,6 @@ real Zenoh session; the samples are rosbags' CDR on rmw_zenoh keys."""
 from __future__ import annotations
 
 import struct
-import time
 
 import numpy as np
 import pytest
@@ -43,7 +42,9 @@ class Live:
     def put(self, topic: str, msgtype: str, message, attachment: bytes | None = None, key: str | None = None):
         payload = bytes(M.store.serialize_cdr(message, msgtype))
         role = {"/scan": "scan", "/odom": "odom", "/tf": "tf", "/tf_static": "tf_static", "/slam/path": "path"}[topic]
-        self.source.handle(role, key or rmw_zenoh_key(topic, msgtype), payload, attachment, time.time())
+        if key is None and self.source.ros.mapping == "bridge":
+            key = topic.strip("/")
+        self.source.handle(role, key or rmw_zenoh_key(topic, msgtype), payload, attachment)
 
     def scan(self, stamp: float):
         self.put("/scan", LASER_SCAN, M.laser_scan(stamp, "laser", RANGES, -1.0, 0.02, 0.0, 30.0))
@@ -108,7 +109,7 @@ def test_bad_samples_are_counted_and_change_nothing(live):
     ros = live(odom_topic="/odom")
     ros.static()
     ros.odom(10.0, 1.0)
-    ros.source.handle("scan", rmw_zenoh_key("/scan", LASER_SCAN), b"\x00\x01\x00\x00garbage", None, time.time())
+    ros.source.handle("scan", rmw_zenoh_key("/scan", LASER_SCAN), b"\x00\x01\x00\x00garbage", None)
     ros.put("/scan", ODOMETRY, M.odometry(10.0, "odom", "base_link", MOUNT))  # the key names another type
     bad_attachment = struct.pack("<qqB16s", 1, 2, 3, bytes(16))
     ros.put("/scan", LASER_SCAN, M.laser_scan(10.0, "laser", RANGES, -1.0, 0.02, 0.0, 30.0), bad_attachment)
@@ -160,3 +161,16 @@ def test_a_path_corrects_the_nodes_it_has_and_only_what_moved(live):
     np.testing.assert_allclose(dict(update.poses)[0].as_xytheta(), expected, atol=1e-9)
     ros.put("/slam/path", PATH, M.path(12.0, "map", [(10.0, body), (11.0, same)]))  # nothing moved since
     assert len(ros.updates()) == 1 and ros.source.counts["updates"] == 1
+
+
+def test_bridge_keys_name_no_type_so_the_bytes_tell_laser_scan_from_point_cloud(live):
+    ros = live(mapping="bridge")
+    ros.static()
+    ros.put("/tf", TF, M.tf([(s, "odom", "base_link", MOUNT) for s in (1.0, 3.0)]), key="tf")
+    ros.put("/scan", LASER_SCAN, M.laser_scan(2.0, "laser", RANGES, -1.0, 0.02, 0.0, 30.0), key="scan")
+    cloud = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.5]], dtype=np.float32).tobytes()
+    xyz = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+    ros.put("/scan", POINT_CLOUD2, M.point_cloud(2.5, "laser", cloud, xyz, 12, 2), key="scan")
+    assert [m.dim for _, m in sorted(ros.scans().items())] == [2, 3]
+    ros.put("/scan", ODOMETRY, M.odometry(2.7, "odom", "base_link", MOUNT), key="scan")  # neither
+    assert ros.source.counts["bad"] == 1
