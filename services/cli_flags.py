@@ -30,7 +30,7 @@ def config_flag(p: argparse.ArgumentParser) -> None:
         "--config",
         metavar="FILE",
         default=None,
-        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim] settings; "
+        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim], [ros2] settings; "
         "flags given here win over it",
     )
 

@@ -67,6 +67,13 @@ from .poses import LivePoses
 log = logging.getLogger("gmmap.ros2")
 
 TF = "tf2_msgs/msg/TFMessage"
+# the options of file sources, and what a live ROS 2 source has instead
+FILE_OPTIONS = {
+    "corrections": "a SLAM back end's nav_msgs/Path: --path-topic",
+    "poses": "tf or --odom-topic",
+    "pose_topic": "--odom-topic",
+    "scans": "it runs until SIGINT/SIGTERM",
+}
 PATH = "nav_msgs/msg/Path"
 SUBSCRIPTION_QOS = qos_chunk(RELIABLE, VOLATILE, KEEP_LAST, 10)
 STATIC_QOS = qos_chunk(RELIABLE, TRANSIENT_LOCAL, KEEP_LAST, 1)  # as tf2's static listener
@@ -282,6 +289,9 @@ def run_ros2_agent(config: GmmapConfig) -> int:
     o, ros = config.agent, config.ros2
     if o.scan_topic is None:
         raise ValueError("agent.scan_topic: --source ros2 needs --scan-topic (a LaserScan or PointCloud2 topic)")
+    for name, instead in FILE_OPTIONS.items():
+        if getattr(o, name) is not None:
+            raise ValueError(f"agent.{name}: a ros2 source does not take it ({instead})")
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
