@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from gmm_core.pose import Pose
 from services.agent.agent import Agent
@@ -133,10 +134,17 @@ class LiveSource:
                         keys.name, types[0], STATIC_QOS if role == "tf_static" else SUBSCRIPTION_QOS
                     )
         self._scan_type: str | None = None
-        self._subscribers = [
-            session.declare_subscriber(keys.subscription, lambda sample, role=role: self._on_sample(role, sample))
-            for role, (keys, _) in self.topics.items()
-        ]
+        self._subscribers = [self._subscribe(role, keys) for role, (keys, _) in self.topics.items()]
+
+    def _subscribe(self, role: str, keys: TopicKeys):
+        """A subscriber of the topic; tf_static's, transient local as tf2's, also asks the publishers'
+        caches for what they sent before it came (rmw_zenoh keeps transient-local samples in a Zenoh
+        advanced publisher's cache), so a robot's mounts published at its start reach a later agent."""
+        callback = lambda sample: self._on_sample(role, sample)  # noqa: E731
+        if role != "tf_static":
+            return self.session.declare_subscriber(keys.subscription, callback)
+        history = zenoh.ext.HistoryConfig(detect_late_publishers=True)
+        return zenoh.ext.declare_advanced_subscriber(self.session, keys.subscription, callback, history=history)
 
     def _declare_subscription(self, topic: str, msgtype: str, qos: str) -> None:
         self._entity += 1

@@ -57,6 +57,17 @@ class RosRobot:
             self._publishers[topic] = publisher
         return self._publishers[topic]
 
+    def latch(self, topic: str, msgtype: str, message) -> None:
+        """Publish transient local as rmw_zenoh does: an advanced publisher whose cache keeps the
+        last sample for subscribers that come later (the session needs timestamping)."""
+        publisher = zenoh.ext.declare_advanced_publisher(
+            self.session, self.key(topic, msgtype), cache=zenoh.ext.CacheConfig(1), publisher_detection=True
+        )
+        self._sequence += 1
+        attachment = struct.pack("<qqB16s", self._sequence, time.time_ns(), 16, self.gid)
+        publisher.put(bytes(self.store.serialize_cdr(message, msgtype)), attachment=attachment)
+        self._publishers[topic] = publisher
+
     def publish(self, topic: str, msgtype: str, message) -> float:
         """Put one message; the time.time() of the put."""
         payload = bytes(self.store.serialize_cdr(message, msgtype))
