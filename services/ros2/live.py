@@ -194,8 +194,14 @@ class LiveSource:
                 self._correct(msg)
             self._pose_held()
         except (wire.RosWireError, DatasetError, ValueError) as error:
-            self.counts["bad"] += 1
-            log.warning("ignored a sample on %s (%s): %s", keys.name, key, error)
+            self._count("bad", "ignored a sample on %s (%s): %s", keys.name, key, error)
+
+    def _count(self, what: str, message: str, *args) -> None:
+        """Count one more `what`; log it the 1st, 10th, 100th... time (a misconfigured robot repeats)."""
+        self.counts[what] += 1
+        n = self.counts[what]
+        if n == 10 ** (len(str(n)) - 1):
+            log.warning(f"{message} [{what} {n}]", *args)
 
     def _decode(self, keys: TopicKeys, types: tuple[str, ...], key: str, payload: bytes):
         """(type, message): the type the key names (rmw_zenoh), else the first of `types` that the
@@ -238,8 +244,7 @@ class LiveSource:
                 if self.poses.newest - scan.stamp <= self.ros.hold_s:
                     return  # its pose may still come; the scans behind it wait too
                 self._held.popleft()
-                self.counts["dropped_unposed"] += 1
-                log.warning("dropped a scan at %.3f s that cannot be posed: %s", scan.stamp, error)
+                self._count("dropped_unposed", "dropped a scan at %.3f s that cannot be posed: %s", scan.stamp, error)
                 continue
             self._held.popleft()
             if scan.planar:
