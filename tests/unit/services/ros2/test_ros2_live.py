@@ -174,3 +174,14 @@ def test_bridge_keys_name_no_type_so_the_bytes_tell_laser_scan_from_point_cloud(
     assert [m.dim for _, m in sorted(ros.scans().items())] == [2, 3]
     ros.put("/scan", ODOMETRY, M.odometry(2.7, "odom", "base_link", MOUNT), key="scan")  # neither
     assert ros.source.counts["bad"] == 1
+
+
+def test_a_long_run_keeps_its_poses_bounded_and_right(live):
+    ros = live(odom_topic="/odom")
+    ros.static()
+    for k in range(3000):  # 300 s of odometry at 10 Hz
+        ros.odom(0.1 * k, 0.01 * k)
+    assert len(ros.source.poses._samples) <= 1000 + 10 * 2 * 60  # pruned to the last minute and a bit
+    ros.scan(299.85)
+    [message] = ros.scans().values()
+    np.testing.assert_allclose(message.pose.as_xytheta(), expected_laser(29.985), atol=1e-5)
