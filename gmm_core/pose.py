@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,7 @@ def _determinant(R: np.ndarray) -> float:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)  # a server holds a pose per node for a whole shift
 class Pose:
     """A rigid transform x_world = R @ x_local + t, in 2D or 3D."""
 
@@ -92,6 +93,14 @@ class Pose:
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Transform (n, d) points from the local frame to the parent frame."""
         return np.asarray(points) @ self.R.T + self.t
+
+    def displacement(self, other: Pose, reach: float) -> float:
+        """The farthest any point within `reach` of the local origin moves from this pose to `other`:
+        |t' - t| + reach ||R' - R||_2, where the spectral norm of R' - R is 2 sin(phi / 2) =
+        sqrt(d - tr(R^T R')) for the angle phi between the rotations (an upper bound, reached in 2D)."""
+        cos_sum = float(np.sum(self.R * other.R))  # tr(R^T R')
+        turn = math.sqrt(max(0.0, self.dim - cos_sum))
+        return float(np.linalg.norm(other.t - self.t)) + reach * turn
 
     def between(self, other: Pose, fraction: float) -> Pose:
         """The pose a `fraction` of the way from this one to `other`: translation on the line,

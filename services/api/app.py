@@ -29,6 +29,9 @@ from starlette.staticfiles import StaticFiles
 
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
+from services.export.octomap_tree import NOT_3D, bt_bytes, ot_bytes, reach_problem
+from services.export.pgm import map_classes, pgm_bytes
+from services.export.ply import ply_bytes
 from services.map_server.tiles import MAX_STALE_S
 from services.map_server.tokens import TokenFile
 from services.map_server.tracers import TracersSaturated
@@ -54,6 +57,10 @@ class Format(str, Enum):
     npy = "npy"
     png = "png"
     msgpack = "msgpack"
+    pgm = "pgm"
+    bt = "bt"
+    ot = "ot"
+    ply = "ply"
 
 
 class Shade(str, Enum):
@@ -63,7 +70,16 @@ class Shade(str, Enum):
     probability = "probability"
 
 
-MEDIA_TYPES = {Format.npy: "application/x-npy", Format.png: "image/png", Format.msgpack: "application/msgpack"}
+MEDIA_TYPES = {
+    Format.npy: "application/x-npy",
+    Format.png: "image/png",
+    Format.msgpack: "application/msgpack",
+    Format.pgm: "image/x-portable-graymap",
+    Format.bt: "application/octet-stream",
+    Format.ot: "application/octet-stream",
+    Format.ply: "application/octet-stream",
+}
+EXPORTS = {Format.pgm, Format.bt, Format.ot, Format.ply}  # classified by Eq. 12, as `gmmap export` writes them
 
 
 # Schema constraints are published for clients and API fuzzers; the checks themselves are in
@@ -218,7 +234,12 @@ def create_app(
                 "content": {m: {} for m in MEDIA_TYPES.values()},
                 "description": "npy: float32 probabilities (ny, nx) or (nz, ny, nx); png: 8-bit grey "
                 "image seen from above, north up (see `shade`); msgpack: a protocol "
-                "MapReply of the probabilities. X-Map-Age: seconds the state served has been out of date "
+                "MapReply of the probabilities; pgm: the ROS map_server image of the Eq. 12 classes (occupied 0, "
+                "free 254, unknown 205; its YAML's origin is X-Grid-Origin); bt: an OctoMap binary tree of the "
+                "occupied and free cells (3D maps; each cell in the OctoMap voxel holding its centre); ot: the "
+                "same as a full OctoMap tree whose leaves hold the MAP log-odds log(p / (1 - p)); ply: the "
+                "occupied cell centres with their probability. "
+                "X-Map-Age: seconds the state served has been out of date "
                 f"(0: up to date; at most {MAX_STALE_S:g} when a previous state is served under load)",
             },
             503: {
@@ -240,7 +261,7 @@ def create_app(
             f"{params.MAX_RESOLUTION}; at most {params.MAX_CELLS:,} cells",
             **_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION),
         ),
-        format: Format = Query(Format.npy, description="npy, png or msgpack"),
+        format: Format = Query(Format.npy, description="npy, png, msgpack, pgm, bt (3D), ot (3D) or ply"),
         robots: str | None = Query(
             None,
             description="comma-separated robot ids; every robot when absent",
@@ -258,7 +279,8 @@ def create_app(
         variance: float = Query(
             default_variance,
             description=(
-                f"png with shade=classes only: sigma^2 of Eq. 12, {params.MIN_VARIANCE} to {params.MAX_VARIANCE} "
+                f"png with shade=classes, pgm, bt, ot and ply: sigma^2 of Eq. 12, "
+                f"{params.MIN_VARIANCE} to {params.MAX_VARIANCE} "
                 f"(the variance p (1 - p) of a cell's Bernoulli occupancy). A cell is free for "
                 f"p <= (1 - sqrt(1 - 4 sigma^2)) / 2, occupied for p >= (1 + sqrt(1 - 4 sigma^2)) / 2, unknown between "
                 f"and at 0.5 (nothing seen); a smaller sigma^2 widens that dead band. Default: the server's (the "
@@ -273,9 +295,17 @@ def create_app(
         lo, hi = params.bbox(bbox)
         params.check_dimension(len(lo), fmap.dim, "bbox")
         grid = params.grid(lo, hi, res)
+        if format in (Format.bt, Format.ot):
+            if grid.dim != 3:
+                raise ApiError("format", NOT_3D.format(fmt=format.value, dim=grid.dim))
+            if problem := reach_problem(grid):
+                raise ApiError("bbox", problem)
         selected = who.select(params.robots(robots))  # the reply's key below: per client's robots
         sigma2 = params.variance(variance)
-        picture = (shade, sigma2 if shade is Shade.classes else None) if format is Format.png else None
+        if format is Format.png:
+            picture = (shade, sigma2 if shade is Shade.classes else None)
+        else:  # the exports classify by Eq. 12 too
+            picture = (format, sigma2) if format in EXPORTS else None
         try:
             answer = occupancy_of(grid, selected)
         except TracersSaturated as busy:
@@ -297,6 +327,14 @@ def create_app(
                 body = buffer.getvalue()
             elif format is Format.png:
                 body = occupancy_png(prob, sigma2) if shade is Shade.classes else probability_png(prob)
+            elif format is Format.pgm:
+                body = pgm_bytes(map_classes(prob, sigma2))
+            elif format is Format.bt:
+                body = bt_bytes(prob, grid, sigma2)
+            elif format is Format.ot:
+                body = ot_bytes(prob, grid, sigma2)
+            elif format is Format.ply:
+                body = ply_bytes(prob, grid, sigma2)
             else:
                 body = encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
             encoded.put(reply, prob, body)

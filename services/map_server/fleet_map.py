@@ -21,7 +21,7 @@ from gmm_core.occupancy import DEFAULT_PRIOR
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
 
-from .nodes import NodeStore
+from .nodes import NodeStore, ScanEntry
 from .samples import SampleCache
 from .tiles import TileAnswer, TileCache
 from .tracers import TracerPool
@@ -61,6 +61,7 @@ class FleetMap:
     # -- ingest ---------------------------------------------------------------------------
     def close(self) -> None:
         """Stop tracing (a server that is stopping); queries after this fail."""
+        self._tiles.close()
         self._tracers.close()
 
     def ingest_first(self):
@@ -75,8 +76,12 @@ class FleetMap:
 
     def add_scans(self, scans: Sequence[tuple[ScanMessage, int, bytes | None]]) -> list[bool]:
         """Hold each (message, wire size, raw bytes or None) of an ingest batch; whether each was new."""
+        return self.add_entries([ScanEntry.of(*scan) for scan in scans])
+
+    def add_entries(self, entries: Sequence[ScanEntry]) -> list[bool]:
+        """Hold each scan of a batch as the node store keeps it (a restart reads them so); whether each was new."""
         with self._lock:
-            return self._nodes.add_many(scans)
+            return self._nodes.add_many(entries)
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
         """Re-pose nodes (Eq. 2 at query time), node by node: a listed node takes the update's pose

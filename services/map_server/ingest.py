@@ -28,6 +28,7 @@ from collections.abc import Callable
 
 from protocol import Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode, parse_key
 
+from .nodes import ScanEntry
 from .state import ServerState
 
 log = logging.getLogger("gmmap.server")
@@ -115,19 +116,19 @@ class Ingest:
     def replay(self) -> int:
         """Load the store into the FleetMap (before subscribing); returns the scans loaded."""
         fleet_map, scans, usage = self.state.fleet_map, 0, defaultdict(int)
-        batch: list[tuple[ScanMessage, int, bytes | None]] = []
+        batch: list[ScanEntry] = []
         for record in self.state.store.load(self.state.fleet):
             message = record.message
             self._dim = self._dim or message.dim
-            if isinstance(message, ScanMessage):
-                batch.append((message, record.size, record.raw))
+            if isinstance(message, ScanEntry):
+                batch.append(message)
                 usage[message.robot] += record.size
                 if len(batch) == MAX_BATCH:  # in batches, as ingest adds them
-                    scans += sum(fleet_map.add_scans(batch))
+                    scans += sum(fleet_map.add_entries(batch))
                     batch = []
             else:
                 fleet_map.apply_poses(message)
-        scans += sum(fleet_map.add_scans(batch))
+        scans += sum(fleet_map.add_entries(batch))
         for robot, size in usage.items():  # once per robot, not once per scan
             self._add_usage(robot, size)
         return scans

@@ -53,6 +53,35 @@ def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+class ScanEntry(NamedTuple):
+    """What the node store holds of a scan: made from a decoded message (`of`), or read back from a
+    store's row without decoding the model (a restart: Store.load)."""
+
+    robot: str
+    node: int
+    pose: Pose  # the scan's own estimate, robot map frame (the node's pose until a correction)
+    origin: np.ndarray  # (d,) sensor origin in the node frame
+    local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
+    local_hi: np.ndarray
+    components: int
+    size: int  # bytes on the wire
+    raw: bytes | None  # the ScanMessage as received; None: `model` holds it
+    model: ScanModel | None = None
+
+    @property
+    def dim(self) -> int:
+        return self.pose.dim
+
+    @staticmethod
+    def of(msg: ScanMessage, size: int = 0, raw: bytes | None = None) -> ScanEntry:
+        lo, hi = local_reach(msg.model)
+        held = None if raw is None else bytes(raw)
+        model = msg.model if raw is None else None
+        return ScanEntry(
+            msg.robot, msg.node, msg.pose, msg.model.origin, lo, hi, msg.model.n_components, size, held, model
+        )
+
+
 def world_boxes(
     poses: Sequence[Pose], lo: np.ndarray, hi: np.ndarray, anchor: Pose | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -82,6 +111,7 @@ class Node:
     seed: int  # of its samples: scan_seed(robot, node)
     local_lo: np.ndarray  # node-frame box of its rays (local_reach), metres
     local_hi: np.ndarray
+    reach: float  # how far from the node frame's origin its rays reach at most (the box's far corner), metres
     pose_changes: int = 0  # bumped whenever a correction sets `map_pose`
     posed: Posed | None = None  # where it stood when last asked (Robot.posed), shared by the tiles counting it
 
@@ -235,42 +265,43 @@ class NodeStore:
     def add(self, msg: ScanMessage, size_bytes: int = 0, raw: bytes | None = None) -> bool:
         """Hold a scan; False if (robot, node) is already held (a resend). `raw`: `msg` as received,
         held instead of the decoded model."""
-        return self.add_many([(msg, size_bytes, raw)])[0]
+        return self.add_many([ScanEntry.of(msg, size_bytes, raw)])[0]
 
-    def add_many(self, scans: Sequence[tuple[ScanMessage, int, bytes | None]]) -> list[bool]:
-        """Hold each (message, wire size, raw bytes or None) as `add`; whether each was new.
+    def add_many(self, entries: Sequence[ScanEntry]) -> list[bool]:
+        """Hold each scan as `add`; whether each was new.
 
         One ingest batch at a time: the new nodes' world boxes are made per robot, and the index,
         the change log and the tiles are told once for the whole batch.
         """
         added: dict[str, list[Node]] = {}
         new = []
-        for msg, size_bytes, raw in scans:
+        for entry in entries:
             if self.dim is None:
-                self.dim = msg.dim
-                self._index = NodeIndex(msg.dim)
-            elif msg.dim != self.dim:
-                raise ValueError(f"dimension: this map is {self.dim}D, the scan is {msg.dim}D")
-            robot = self.robots.setdefault(msg.robot, Robot())
+                self.dim = entry.dim
+                self._index = NodeIndex(entry.dim)
+            elif entry.dim != self.dim:
+                raise ValueError(f"dimension: this map is {self.dim}D, the scan is {entry.dim}D")
+            robot = self.robots.setdefault(entry.robot, Robot())
             robot.last_seen = time.time()
-            robot.bytes_received += size_bytes
-            new.append(msg.node not in robot.nodes)
+            robot.bytes_received += entry.size
+            new.append(entry.node not in robot.nodes)
             if not new[-1]:
                 continue
-            lo, hi = local_reach(msg.model)
+            lo, hi = entry.local_lo, entry.local_hi
             node = Node(
-                NodeKey(msg.robot, msg.node),
-                None if raw is None else bytes(raw),
-                msg.model if raw is None else None,
-                msg.model.origin,
-                robot.graph.pose(msg.node) or msg.pose,  # a correction that came before its scan, else its estimate
-                scan_seed(msg.robot, msg.node),
+                NodeKey(entry.robot, entry.node),
+                entry.raw,
+                entry.model,
+                entry.origin,
+                robot.graph.pose(entry.node) or entry.pose,  # a correction that came before its scan, else its estimate
+                scan_seed(entry.robot, entry.node),
                 lo,
                 hi,
+                float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)))),
             )
-            robot.nodes[msg.node] = node
-            robot.components += msg.model.n_components
-            added.setdefault(msg.robot, []).append(node)
+            robot.nodes[entry.node] = node
+            robot.components += entry.components
+            added.setdefault(entry.robot, []).append(node)
         if added:
             boxes = [
                 world_boxes(

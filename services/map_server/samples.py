@@ -13,11 +13,15 @@ from typing import NamedTuple
 
 import numpy as np
 
+from gmm_core import ScanModel
 from gmm_core.sampling import scan_rays
 
 from .nodes import Node, NodeKey
 
 SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
+# Decoded scan models kept for drawing a node's samples at the next resolution: a new node is asked
+# for at every resolution the viewer's tiles use, within moments (a node holds only its wire bytes).
+MODEL_CACHE_NODES = 512
 
 
 class NodeRays(NamedTuple):
@@ -36,6 +40,7 @@ class SampleCache:
         self.rays_held = 0
         self._lock = threading.Lock()
         self._rays: OrderedDict[tuple[NodeKey, float], NodeRays] = OrderedDict()
+        self._models: OrderedDict[NodeKey, ScanModel] = OrderedDict()
 
     def rays(self, node: Node, resolution: float) -> NodeRays:
         key = (node.key, resolution)
@@ -45,7 +50,7 @@ class SampleCache:
                 self._rays.move_to_end(key)
                 return rays
         # Drawn outside the lock; a thread that draws the same key meanwhile draws the same rays.
-        rays = NodeRays(*scan_rays(node.model, resolution, node.seed, self.samples_per_cell))
+        rays = NodeRays(*scan_rays(self._model(node), resolution, node.seed, self.samples_per_cell))
         with self._lock:
             if key not in self._rays:
                 self._rays[key] = rays
@@ -54,3 +59,17 @@ class SampleCache:
                 _, old = self._rays.popitem(last=False)
                 self.rays_held -= len(old.ends)
         return rays
+
+    def _model(self, node: Node) -> ScanModel:
+        """The node's scan model, decoded once for all the resolutions asked within moments."""
+        with self._lock:
+            model = self._models.get(node.key)
+            if model is not None:
+                self._models.move_to_end(node.key)
+                return model
+        model = node.model
+        with self._lock:
+            self._models[node.key] = model
+            if len(self._models) > MODEL_CACHE_NODES:
+                self._models.popitem(last=False)
+        return model

@@ -34,6 +34,7 @@ from protocol import (
 )
 from services.api import params  # one set of limits for both APIs
 from services.config import summary
+from services.host import release_free_memory
 from services.ros2.config import Ros2Config
 from services.zenoh_config import zenoh_config
 
@@ -47,6 +48,7 @@ from .tokens import TokenFile
 log = logging.getLogger("gmmap.server")
 
 MAX_REQUEST_HEAD = 1 << 20  # bytes
+RELEASE_MEMORY_S = 10.0  # s between handing freed memory back to the OS (services.host.release_free_memory)
 
 
 def query_grid(query: MapQuery) -> Grid:
@@ -247,7 +249,8 @@ def run_server(
             file=sys.stderr,
             flush=True,
         )
-        stop.wait()
+        while not stop.wait(RELEASE_MEMORY_S):  # the main thread has nothing else to do
+            release_free_memory()
         print("gmmap server: stopping", file=sys.stderr, flush=True)
     finally:
         stopping = time.perf_counter()

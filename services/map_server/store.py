@@ -30,15 +30,19 @@ from gmm_core import Pose
 from gmm_core.pose import poses_from_arrays
 from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode
 
+from .nodes import ScanEntry
 from .pose_graph import PoseGraph
 
 DB_NAME = "gmmap.db"
 SCAN_CHUNK = 2048  # scans read per query at a restart: bounded memory, and the lock held briefly
 
 TABLES = (
+    # entry, components: what the fleet map holds of the scan besides its bytes (nodes.ScanEntry), so a
+    # restart need not decode the models; NULL in rows written before they existed (decoded then).
     """CREATE TABLE IF NOT EXISTS scans (
         fleet TEXT NOT NULL, robot TEXT NOT NULL, node INTEGER NOT NULL,
         stamp REAL NOT NULL, size INTEGER NOT NULL, received REAL NOT NULL, raw BLOB NOT NULL,
+        entry BLOB, components INTEGER,
         PRIMARY KEY (fleet, robot, node)
     ) WITHOUT ROWID""",
     "CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -55,13 +59,14 @@ TABLES = (
     ) WITHOUT ROWID""",
 )
 POSE_DIMS = {8 * (d + d * d): d for d in (2, 3)}  # a pose blob's length -> its dimension
+ENTRY_DIMS = {4 * d + d * d: d for d in (2, 3)}  # values in a scan's entry blob -> its dimension
 
 
 @dataclass(frozen=True)
 class Stored:
     """One record a restart replays: a scan (with its wire size) or one revision of a robot's pose graph."""
 
-    message: ScanMessage | PoseGraphUpdate
+    message: ScanEntry | PoseGraphUpdate
     size: int  # of a scan, as received; 0 for a pose graph's revision (rebuilt, never sent as such)
     raw: bytes | None = None  # a scan's bytes as received (the map holds them, not the decoded model)
 
@@ -93,6 +98,10 @@ class Store:
                 self._db.execute("ALTER TABLE poses RENAME TO merged_poses")
             for table in TABLES:
                 self._db.execute(table)
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(scans)")}
+            for column in ("entry BLOB", "components INTEGER"):  # a store of an earlier schema gains them
+                if column.split()[0] not in columns:
+                    self._db.execute(f"ALTER TABLE scans ADD COLUMN {column}")
             if merged:
                 _convert_merged(self._db, merged)
             # The store's identity, made once with the data directory: Acks name it, so a robot can tell
@@ -122,8 +131,8 @@ class Store:
             try:
                 new = [
                     self._db.execute(
-                        "INSERT OR IGNORE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)",
-                        (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw)),
+                        "INSERT OR IGNORE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw), *entry_row(m)),
                     ).rowcount
                     == 1
                     for m, raw in batch
@@ -193,12 +202,12 @@ class Store:
         while True:
             with self._lock:
                 rows = self._db.execute(
-                    "SELECT robot, node, raw, size FROM scans WHERE fleet = ? AND (robot, node) > (?, ?) "
-                    "ORDER BY robot, node LIMIT ?",
+                    "SELECT robot, node, raw, size, entry, components FROM scans "
+                    "WHERE fleet = ? AND (robot, node) > (?, ?) ORDER BY robot, node LIMIT ?",
                     (fleet, *after, SCAN_CHUNK),
                 ).fetchall()
-            for _, _, raw, size in rows:
-                yield Stored(decode(raw, expect=ScanMessage), size, raw)
+            for entry in scan_entries(rows):
+                yield Stored(entry, entry.size, entry.raw)
             if len(rows) < SCAN_CHUNK:
                 return
             after = rows[-1][:2]
@@ -316,3 +325,29 @@ def _convert_merged(db: sqlite3.Connection, columns: set[str]) -> None:
             raise ValueError(f"poses of {fleet}/{robot}: {error}") from None
         _write_graph(db, fleet, robot, graph, graph.poses, received)
     db.execute("DROP TABLE merged_poses")
+
+
+def entry_row(message: ScanMessage) -> tuple[bytes, int]:
+    """The `entry` and `components` columns of a scan: its node-frame box, sensor origin and pose
+    (t, then R, float64 as decoded), so that a restart rebuilds its node without decoding the model."""
+    entry = ScanEntry.of(message)
+    values = (entry.local_lo, entry.local_hi, entry.origin, entry.pose.t, entry.pose.R.ravel())
+    return np.concatenate(values).astype("<f8").tobytes(), entry.components
+
+
+def scan_entries(rows: Sequence[tuple]) -> list[ScanEntry]:
+    """ScanEntry of each (robot, node, raw, size, entry, components) row; a row written before the
+    entry columns existed is decoded. The poses are built at once (poses_from_arrays)."""
+    entries: list[ScanEntry | None] = [
+        ScanEntry.of(decode(raw, expect=ScanMessage), size, raw) if entry is None else None
+        for _, _, raw, size, entry, _ in rows
+    ]
+    kept = [i for i, entry in enumerate(entries) if entry is None]
+    if kept:
+        table = np.stack([np.frombuffer(rows[i][4], dtype="<f8") for i in kept])  # one dimension per map
+        d = ENTRY_DIMS[table.shape[1]]
+        poses = poses_from_arrays(table[:, 4 * d :].reshape(-1, d, d), table[:, 3 * d : 4 * d])
+        for i, v, pose in zip(kept, table, poses):
+            robot, node, raw, size, _, components = rows[i]
+            entries[i] = ScanEntry(robot, node, pose, v[2 * d : 3 * d], v[:d], v[d : 2 * d], components, size, raw)
+    return entries  # type: ignore[return-value]

@@ -19,10 +19,12 @@ degrade").
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -32,12 +34,18 @@ from gmm_core import Grid
 from gmm_core.occupancy import map_estimate
 
 from .nodes import NodeKey, NodeStore, Posed
-from .tracers import TracerPool, TracersSaturated
+from .tracers import TracerPool, TracersSaturated, TracingStopped
+
+log = logging.getLogger("gmmap.server")
 
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
 MAX_STALE_S = 2.0  # a previous state is served only while out of date for at most this long
 COALESCE_S = 0.5  # under load, a state this young ...
 COALESCE_CHANGES = 16  # ... with at most this many changes since is served instead of updated
+# A moved node is traced again into a tile only once some ray end of it moved by more than this many
+# of the tile's cells since the pose the tile counts it at: an optimiser moves every node of a loop a
+# little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
+REPOSE_CELLS = 0.25
 
 
 @dataclass(frozen=True)
@@ -63,9 +71,11 @@ class Tile:
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None  # None until the first trace succeeded
     prob_at: int = -1  # `changes` when `prob` was computed
+    robots: tuple[str, ...] | None = None  # the robots counted; None: all
     outdated_since: float | None = None  # monotonic time of the first change `prob` lacks; None: up to date
     dirty_since: float | None = None  # that of the first change since the running (or last) update began
     lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
+    refreshing: bool = False  # an update in the background is queued or running (TileCache._refresh)
 
     @property
     def nbytes(self) -> int:
@@ -95,6 +105,8 @@ class TileCache:
         self._lock = lock
         self._nodes = nodes
         self._tracers = tracers
+        # Background updates (`_refresh`): one per tracer thread at a time, each tracing on the pool.
+        self._refresher = ThreadPoolExecutor(tracers.threads, "gmmap-refresh")
         self.prior = prior
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
         self._bytes = 0
@@ -105,6 +117,10 @@ class TileCache:
         self._stale = 0  # answered with the previous state while it was being updated or the tracers saturated
         self._coalesced = 0  # answered with a recent state while every tracer was busy
         self._shed = 0  # refused: the tracers were saturated
+
+    def close(self) -> None:
+        """No more background updates (the tracers are closed by their owner)."""
+        self._refresher.shutdown(wait=False, cancel_futures=True)
 
     def values(self) -> list[Tile]:
         """The cached tiles, least recently used first."""
@@ -146,14 +162,17 @@ class TileCache:
         previous state is served instead of an update; a lone query, with no other request nor
         trace running, always sees every change applied before it.
         """
-        key = (tuple(grid.origin), grid.resolution, grid.shape, None if robots is None else tuple(sorted(robots)))
+        robots = None if robots is None else tuple(sorted(robots))
+        key = (tuple(grid.origin), grid.resolution, grid.shape, robots)
         with self._lock:
             self._nodes.check_dim(grid)
             tile = self._tiles.get(key)
             if tile is None:
                 self._admit(may_shed)
                 # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
-                tile = Tile(grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape), self._nodes.log.end)
+                tile = Tile(
+                    grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape), self._nodes.log.end, robots=robots
+                )
                 self._tiles[key] = tile
                 self._bytes += tile.nbytes
                 self._boxes = None
@@ -164,28 +183,36 @@ class TileCache:
                 cached = self._cached(tile)
                 if cached is not None:
                     return cached
+                self._admit(may_shed)  # it would trace, or wait for a trace: shed if they are saturated
                 if tile.lock.acquire(blocking=False):  # never waits under the map's lock
-                    try:
-                        self._admit(may_shed)
-                    except TracersSaturated:
-                        tile.lock.release()
-                        raise
-                    changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
-                    afresh = first or tile.seen < self._nodes.log.start
-                    if afresh:
-                        reaching = self._nodes.reaching(grid, robots)
-                    else:
-                        changed = self._nodes.changed_since(tile.seen, grid, robots)
-                    tile.dirty_since = None  # from here on, changes are left for the next update
+                    work = self._begin_update(tile)
                     break
             with tile.lock:  # another request updates it, and its previous state is too old or absent
                 pass
+        return self._update(tile, work)
+
+    def _begin_update(self, tile: Tile) -> tuple:
+        """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
+        nodes reaching it or those changed since it last read the log, the changes and log position
+        it will account for, whether it is the first trace)."""
+        changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
+        afresh = first or tile.seen < self._nodes.log.start
+        if afresh:
+            nodes = self._nodes.reaching(tile.grid, tile.robots)
+        else:
+            nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
+        tile.dirty_since = None  # from here on, changes are left for the next update
+        return afresh, nodes, changes, seen, first
+
+    def _update(self, tile: Tile, work: tuple) -> TileAnswer:
+        """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
+        afresh, nodes, changes, seen, first = work
         with _held(tile.lock):
             try:
                 if afresh:
-                    self._trace_afresh(tile, reaching)
+                    self._trace_afresh(tile, nodes)
                 else:
-                    self._trace_changes(tile, changed)
+                    self._trace_changes(tile, nodes)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -204,15 +231,30 @@ class TileCache:
                 self._nodes.log.drop_before(min((t.seen for t in self._tiles.values()), default=seen))
                 return TileAnswer(prob, _age(tile), "updated")
 
+    def _refresh(self, tile: Tile) -> None:
+        """Update `tile` in the background (a request served its previous state meanwhile)."""
+        with self._lock:
+            tile.refreshing = False
+            if tile.prob_at == tile.changes or not tile.lock.acquire(blocking=False):
+                return  # up to date, or a request is updating it
+            work = self._begin_update(tile)
+        try:
+            self._update(tile, work)
+        except TracingStopped:
+            pass  # the server is stopping
+        except Exception:  # the tile stays as it was; the next request updates it or says why
+            log.exception("background update of a tile failed")
+
     def _cached(self, tile: Tile) -> TileAnswer | None:
         """The answer from the cache, or None when this request must update the tile (or wait for
         the request that does). Under the map's lock.
 
         Up to date: fresh. Otherwise the previous state, while it has been out of date for at most
-        MAX_STALE_S: stale while another request updates the tile or the tracers are saturated
-        (rather than shed); coalesced while every tracer is busy and the state is at most
-        COALESCE_S old with at most COALESCE_CHANGES changes since, so that a busy tile is updated
-        once for many changes instead of once per change.
+        MAX_STALE_S: stale while an update of the tile is under way; with every tracer busy (or
+        saturated), coalesced while the state is at most COALESCE_S old with at most
+        COALESCE_CHANGES changes since (a busy tile is updated once for many changes), else stale
+        while an update starts in the background. So under load a request never waits for an
+        update that a previous state can stand in for; with idle tracers it updates the tile itself.
         """
         if tile.prob is None:
             return None
@@ -222,17 +264,19 @@ class TileCache:
         age = _age(tile)
         if age > MAX_STALE_S:
             return None
-        if tile.lock.locked():
+        if tile.lock.locked() or tile.refreshing:
             self._stale += 1
             return TileAnswer(tile.prob, age, "stale")
         load = self._tracers.load()
-        if load.saturated:
-            self._stale += 1
-            return TileAnswer(tile.prob, age, "stale")
-        if load.busy and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
+        if not (load.busy or load.saturated):
+            return None
+        if not load.saturated and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
             self._coalesced += 1
             return TileAnswer(tile.prob, age, "coalesced")
-        return None
+        tile.refreshing = True
+        self._refresher.submit(self._refresh, tile)
+        self._stale += 1
+        return TileAnswer(tile.prob, age, "stale")
 
     def _admit(self, may_shed: bool) -> None:
         """Raise TracersSaturated (counted) when `may_shed` and the tracers are saturated."""
@@ -256,8 +300,19 @@ class TileCache:
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
         held = tile.held
-        moved = {k: held[k] for k, now in changed.items() if k in held and (now is None or now.stamp != held[k].stamp)}
-        new = [now for k, now in changed.items() if now is not None and (k not in held or held[k].stamp != now.stamp)]
+        tolerance = REPOSE_CELLS * tile.grid.resolution
+        moved, new = {}, []
+        for k, now in changed.items():
+            was = held.get(k)
+            if was is None:
+                if now is not None:
+                    new.append(now)
+            elif now is None:
+                moved[k] = was
+            elif now.stamp != was.stamp and was.pose.displacement(now.pose, now.node.reach) > tolerance:
+                moved[k] = was
+                new.append(now)
+            # else: it stays counted at the pose held, within `tolerance` of where it stands now
         if not (new or moved):
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of

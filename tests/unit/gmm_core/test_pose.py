@@ -64,3 +64,26 @@ def test_poses_from_arrays_builds_and_refuses_what_pose_does(dim):
         assert [(p.R.tobytes(), p.t.tobytes()) for p in many] == [(p.R.tobytes(), p.t.tobytes()) for p in one_by_one]
     with pytest.raises(ValueError, match="must be"):
         poses_from_arrays(np.zeros((2, 3, 3)), np.zeros((2, 2)))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_displacement_bounds_how_far_points_within_reach_move_and_is_reached(dim):
+    """Against brute force: the largest move of many points within `reach` never exceeds the bound,
+    and in 2D (a single rotation plane) points on the reach circle come within 0.1 % of it."""
+    rng = np.random.default_rng(dim)
+    for _ in range(50):
+        if dim == 2:
+            a, b = (Pose.from_xytheta(*rng.normal(size=2), rng.uniform(-np.pi, np.pi)) for _ in range(2))
+        else:
+            a, b = (Pose.from_quaternion(rng.normal(size=3), rng.normal(size=4)) for _ in range(2))
+        reach = rng.uniform(0.1, 20.0)
+        points = rng.normal(size=(20_000, dim))
+        points *= reach / np.linalg.norm(points, axis=1, keepdims=True)  # on the sphere of radius reach
+        inside = points * rng.uniform(0, 1, size=(len(points), 1))
+        moved = np.linalg.norm(b.apply(np.vstack([points, inside])) - a.apply(np.vstack([points, inside])), axis=1)
+        bound = a.displacement(b, reach)
+        assert moved.max() <= bound + 1e-9
+        if dim == 2:  # every point turns by the same angle: the farthest is the one along the translation
+            assert moved.max() >= 0.999 * bound
+    same = Pose.from_xytheta(1.0, 2.0, 0.3) if dim == 2 else Pose.from_quaternion([1, 2, 3], [1, 0.2, 0, 0])
+    assert same.displacement(same, 100.0) == pytest.approx(0.0, abs=1e-6)

@@ -10,7 +10,7 @@ from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
-from services.map_server import nodes
+from services.map_server import nodes, tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import TileCache
 
@@ -43,16 +43,28 @@ def test_served_map_equals_offline_reconstruction(fitted):
     assert np.array_equal(fleet.occupancy(GRID), offline(scans, models, "r1"))
 
 
-def test_pose_update_reposes_without_refitting(fitted):
+@pytest.mark.parametrize("repose_cells", [0.0, tiles.REPOSE_CELLS])
+def test_pose_update_reposes_without_refitting(fitted, monkeypatch, repose_cells):
+    """A cached tile traces a moved node again only once it moved by more than REPOSE_CELLS of a
+    cell at its reach (0: every move); it then equals the offline map of the poses it counts."""
+    monkeypatch.setattr(tiles, "REPOSE_CELLS", repose_cells)
     scans, models = fitted
     fleet = FleetMap("f")
-    for i, (s, m) in enumerate(zip(scans, models)):
-        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, i)))
+    estimates = [drifted(s.pose, i) for i, s in enumerate(scans)]
+    for s, m, estimate in zip(scans, models, estimates):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, estimate))
     before = fleet.occupancy(GRID)
-    assert np.array_equal(before, offline(scans, models, "r1", [drifted(s.pose, i) for i, s in enumerate(scans)]))
+    assert np.array_equal(before, offline(scans, models, "r1", estimates))
     assert fleet.apply_poses(PoseGraphUpdate("f", "r1", 1, tuple((s.index, s.pose) for s in scans)))
     after = fleet.occupancy(GRID)
-    assert np.array_equal(after, offline(scans, models, "r1"))
+    held = fleet._nodes.robots["r1"].nodes
+    counted = [
+        s.pose if estimate.displacement(s.pose, held[s.index].reach) > repose_cells * GRID.resolution else estimate
+        for s, estimate in zip(scans, estimates)
+    ]
+    assert np.array_equal(after, offline(scans, models, "r1", counted))
+    moved = [c is s.pose for c, s in zip(counted, scans)]
+    assert all(moved[1:]) == (repose_cells == 0) and any(moved)  # node 0 has no drift
     assert not np.array_equal(before, after)
     assert not fleet.apply_poses(PoseGraphUpdate("f", "r1", 0, ((0, scans[0].pose),)))  # revision 1 set node 0
     assert fleet.robots()[0]["pose_revision"] == 1
@@ -99,9 +111,11 @@ def test_tile_cache_hits_and_invalidation_only_where_nodes_moved(fitted):
     assert fleet.occupancy(GRID) is not first  # the moved node reaches GRID: recomputed
 
 
-def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted):
+def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted, monkeypatch):
     """Scans arriving, partial corrections and an anchor change between queries: each updated tile
-    (only the difference traced) equals the tile a new FleetMap traces from scratch."""
+    (only the difference traced) equals the tile a new FleetMap traces from scratch. (Every move is
+    traced here; sub-cell moves left out: test_pose_update_reposes_without_refitting.)"""
+    monkeypatch.setattr(tiles, "REPOSE_CELLS", 0.0)
     scans, models = fitted
     served = FleetMap("f")
     messages = [

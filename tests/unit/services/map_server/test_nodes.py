@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from gmm_core import fit_scan
 from protocol import ScanMessage
 from services.map_server import nodes
-from services.map_server.nodes import ChangeLog, NodeKey, NodeStore
+from services.map_server.nodes import ChangeLog, NodeKey, NodeStore, ScanEntry
 from support.pose_graphs import FLEET, ReferenceGraph, pose, random_history, update
 
 
@@ -133,7 +133,7 @@ def test_a_batch_of_scans_is_held_as_the_same_scans_one_by_one(model):
     messages = [scan(model, n, x=0.5 * n) for n in range(5)] + [scan(model, 2, x=9.0)]  # node 2 twice
     messages.append(ScanMessage(FLEET, "q", 0, 0.0, model, pose(3.0)))
     assert [one_by_one.add(m, 10) for m in messages] == [True] * 5 + [False, True]
-    assert batched.add_many([(m, 10, None) for m in messages]) == [True] * 5 + [False, True]
+    assert batched.add_many([ScanEntry.of(m, 10) for m in messages]) == [True] * 5 + [False, True]
     assert len(boxes) == 6 + 1  # one by one, then once for the whole batch
     for robot in ("r", "q"):
         assert np.array_equal(batched.trajectory(robot), one_by_one.trajectory(robot))

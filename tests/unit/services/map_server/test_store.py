@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sqlite3
 import time
 
 import numpy as np
@@ -11,6 +12,7 @@ from gmm_core import Pose, fit_scan
 from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
+from services.map_server.nodes import ScanEntry
 from services.map_server.state import ServerState
 from services.map_server.store import Store
 
@@ -44,6 +46,45 @@ def test_store_keeps_each_scan_once_and_survives_reopening(tmp_path, model):
     assert store.scan_bytes("default", "r", 3) == encode(first)
     assert [r.message.node for r in store.load("default")] == [1, 3]
     assert list(store.load("other")) == []
+
+
+def entry_values(entry):
+    return (
+        entry.robot,
+        entry.node,
+        entry.components,
+        entry.size,
+        entry.raw,
+        entry.pose.t.tolist(),
+        entry.pose.R.tolist(),
+        *(a.tolist() for a in (entry.origin, entry.local_lo, entry.local_hi)),
+    )
+
+
+def test_a_scan_is_loaded_as_the_node_store_holds_it_without_decoding_or_from_an_older_row(tmp_path, model):
+    """Store.load rebuilds each scan's ScanEntry from the row's entry columns (no decode), bit for bit
+    what ScanEntry.of makes of the decoded message; rows of a store written before those columns
+    existed (NULL) are decoded, and a store whose table lacks them gains them when opened."""
+    messages = [decode(encode(scan(model, "r", n, x=0.1 * n))) for n in range(5)]  # as ingest holds them
+    store = Store(tmp_path)
+    store.put_scans([(m, encode(m)) for m in messages])
+    expected = [entry_values(ScanEntry.of(m, len(encode(m)), encode(m))) for m in messages]
+    assert [entry_values(r.message) for r in store.load("default")] == expected
+    store._db.execute("UPDATE scans SET entry = NULL, components = NULL WHERE node % 2 = 0")
+    assert [entry_values(r.message) for r in store.load("default")] == expected
+    store.close()
+    db = sqlite3.connect(tmp_path / "gmmap.db")  # the schema before: no entry columns
+    db.execute("ALTER TABLE scans DROP COLUMN entry")
+    db.execute("ALTER TABLE scans DROP COLUMN components")
+    db.commit()
+    db.close()
+    store = Store(tmp_path)
+    assert [entry_values(r.message) for r in store.load("default")] == expected
+    extra = decode(encode(scan(model, "r", 9)))
+    assert store.put_scan(extra, encode(extra))
+    assert entry_values(list(store.load("default"))[-1].message) == entry_values(
+        ScanEntry.of(extra, len(encode(extra)), encode(extra))
+    )
 
 
 def test_load_reads_scans_chunk_by_chunk_after_the_pose_graphs(tmp_path, model, monkeypatch):

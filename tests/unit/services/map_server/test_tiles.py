@@ -13,6 +13,7 @@ from services.map_server import tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import MAX_STALE_S, TileCache
 from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
+from support.net import wait_for
 from support.saturation import saturated_tracers
 
 GRID = Grid.from_bbox([-8.0, -12.0], [8.0, 4.0], 0.1)
@@ -90,9 +91,10 @@ def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(
     assert np.array_equal(after.prob, fleet_of(messages[:24]).occupancy(GRID))
 
 
-def test_busy_tracers_coalesce_a_recent_state_until_it_is_old_or_much_changed(messages, monkeypatch):
+def test_busy_tracers_coalesce_a_recent_state_and_update_an_older_one_in_the_background(messages, monkeypatch):
     """With every tracer busy, a state at most COALESCE_S old with at most COALESCE_CHANGES changes
-    since is served as is; otherwise (and always with idle tracers, other tests) it is updated."""
+    since is served as is; otherwise it is served stale while an update starts in the background
+    (with idle tracers the request updates it itself: other tests)."""
     monkeypatch.setattr(tiles, "COALESCE_CHANGES", 2)
     monkeypatch.setattr(tiles, "COALESCE_S", 0.2)
     fleet = fleet_of(messages[:20])
@@ -102,13 +104,14 @@ def test_busy_tracers_coalesce_a_recent_state_until_it_is_old_or_much_changed(me
     fleet.add_scan(messages[21])
     coalesced = fleet.occupancy_answer(GRID)
     assert coalesced.kind == "coalesced" and coalesced.prob is before and 0 < coalesced.age <= 0.2
-    fleet.add_scan(messages[22])  # a third change
-    assert fleet.occupancy_answer(GRID).kind == "updated"
-    fleet.add_scan(messages[23])
-    time.sleep(0.25)  # older than COALESCE_S
-    assert fleet.occupancy_answer(GRID).kind == "updated"
-    assert np.array_equal(fleet.occupancy(GRID), fleet_of(messages[:24]).occupancy(GRID))
-    assert fleet.cache_stats()["coalesced"] == 1
+    for upto, pause in ((23, 0.0), (24, 0.25)):  # a third change; then one older than COALESCE_S
+        fleet.add_scan(messages[upto - 1])
+        time.sleep(pause)
+        stale = fleet.occupancy_answer(GRID)
+        assert stale.kind == "stale" and 0 < stale.age <= MAX_STALE_S
+        wait_for(lambda: fleet.occupancy_answer(GRID).kind == "fresh", 30, "the background update")
+        assert np.array_equal(fleet.occupancy(GRID), fleet_of(messages[:upto]).occupancy(GRID))
+    assert fleet.cache_stats()["coalesced"] == 1 and fleet.cache_stats()["updates"] == 2
 
 
 def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover(messages, monkeypatch):
@@ -126,17 +129,20 @@ def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover
         assert shed.value.retry_after >= 1 and shed.value.reason == "tracers_saturated"
         assert fleet.cache_stats()["tiles"] == tiles_before  # shed before any work: no tile made
         assert fleet.occupancy_answer(warm, may_shed=True).kind == "fresh"
-        stale = fleet.occupancy_answer(changed, may_shed=True)  # served rather than shed
+        stale = fleet.occupancy_answer(changed, may_shed=True)  # served rather than shed, its update queued
         assert stale.kind == "stale" and stale.prob is before and 0 < stale.age <= MAX_STALE_S
-        monkeypatch.setattr(tiles, "MAX_STALE_S", 0.0)  # now too old to serve: shed as well
+        wait_for(lambda: fleet.cache_stats()["trace_queued"] == 3, 20, "the background update to queue")
+        monkeypatch.setattr(tiles, "MAX_STALE_S", 0.0)  # now too old to serve: shed rather than wait
         with pytest.raises(TracersSaturated):
             fleet.occupancy_answer(changed, may_shed=True)
         monkeypatch.setattr(tiles, "MAX_STALE_S", MAX_STALE_S)
         stats = fleet.cache_stats()
-        assert (stats["shed"], stats["stale"], stats["trace_queued"]) == (2, 1, 2)
+        assert (stats["shed"], stats["stale"], stats["trace_queued"]) == (2, 1, 3)
     answer = fleet.occupancy_answer(cold, may_shed=True)
     assert (answer.kind, answer.age) == ("updated", 0.0)
     assert np.array_equal(answer.prob, fleet_of(messages[:21]).occupancy(cold))
+    wait_for(lambda: fleet.occupancy_answer(changed).kind == "fresh", 30, "the background update")
+    assert np.array_equal(fleet.occupancy(changed), fleet_of(messages[:21]).occupancy(changed))
     assert fleet.cache_stats()["trace_queued"] == 0
 
 
