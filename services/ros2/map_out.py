@@ -3,8 +3,9 @@ trajectory as nav_msgs/Path on `/<robot>/trajectory`, for RViz, Nav2 and any ROS
 
 Every `map_period` s at most, and only when the map changed (a scan stored or a pose graph
 applied: the robots' node counts and revisions differ), the grid is asked of the FleetMap exactly
-as an HTTP tile is (`FleetMap.occupancy`, the tile cache's incremental update), over the whole
-extent of the map (`FleetMap.extent`), cut around its centre to `map_cells` cells.
+as an HTTP tile is (`FleetMap.occupancy_answer`, the tile cache's incremental update), over the
+whole extent of the map (`FleetMap.extent`), cut around its centre to `map_cells` cells. A state
+served older than the map (busy tracers, tiles.py) is published and asked for again a period later.
 - Frame `map`; the grid's min corner is the map origin, cells of `map_resolution`, rows along y.
 - data: round(100 p) from the MAP estimate (Eq. 11); -1 where p is exactly 0.5, the value of a
   cell no ray reached (Eq. 12's dead band is left to the consumer, e.g. map_server's thresholds).
@@ -154,19 +155,23 @@ class RosMapPublisher:
                 continue
             last = time.monotonic()
             try:
-                self.publish_grid()
+                current = self.publish_grid()
                 self.publish_trajectories()
-                published = signature
+                # a state older than the map (the tracers were busy: tiles.py) goes out again next period
+                published = signature if current else None
             except Exception:  # noqa: BLE001 - a failed publication is logged; the server keeps serving
                 log.exception("publishing the map on %s failed", self.topic)
 
-    def publish_grid(self) -> None:
+    def publish_grid(self) -> bool:
+        """Publish the map; whether the state published was up to date (else it was a previous one,
+        at most tiles.MAX_STALE_S old, served while the tracers were busy)."""
         extent = self.fleet_map.extent()
         if extent is None:
-            return
+            return True
         ros = self.ros
         grid = map_grid(*extent, ros.map_resolution, ros.map_cells, ros.z_band)
-        prob = self.fleet_map.occupancy(grid)
+        answer = self.fleet_map.occupancy_answer(grid)
+        prob = answer.prob
         now = time.time()
         t = self.store.types
         info = t["nav_msgs/msg/MapMetaData"](
@@ -181,6 +186,7 @@ class RosMapPublisher:
         message = t[OCCUPANCY_GRID](header=header, info=info, data=grid_cells(prob))
         payload = wire.encode(message, OCCUPANCY_GRID, ros.distro)
         self._grid_publisher.put(payload, attachment=self._attachment(self._grid_gid))
+        return answer.age == 0
 
     def publish_trajectories(self) -> None:
         t, now = self.store.types, time.time()

@@ -22,7 +22,7 @@ from protocol import ScanMessage, decode
 from services.cli import main
 from services.map_server.store import read_graph
 from services.zenoh_config import zenoh_config
-from support.net import free_port, http_get, wait_for
+from support.net import free_port, get, http_get, wait_for
 from support.paths import ROOT
 from support.processes import EVERY_SCAN, store_db, stored_nodes, written_nodes
 from support.ros2_robot import MOUNT, OCCUPANCY_GRID, PATH, MapSubscriber, RosRobot, intel_topics, laser_3d
@@ -45,8 +45,15 @@ def grid_of(intel) -> Grid:
 
 
 def served(hport: int, grid: Grid) -> np.ndarray:
+    """The HTTP tile once it is up to date (X-Map-Age 0: busy tracers may serve a previous state)."""
     bbox = ",".join(repr(float(v)) for v in (*grid.origin, *grid.upper))
-    return np.load(io.BytesIO(http_get(hport, f"/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy")))
+    url = f"http://127.0.0.1:{hport}/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy"
+
+    def current():
+        status, headers, body = get(url)
+        return body if status == 200 and float(headers["X-Map-Age"]) == 0 else None
+
+    return np.load(io.BytesIO(wait_for(current, 60, "an up-to-date tile", interval=0.2)))
 
 
 def stored_map(data, grid: Grid, poses: dict[int, Pose] | None = None) -> np.ndarray:
