@@ -136,7 +136,7 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
         "30",
         *EVERY_SCAN,
     )
-    procs.ready(agent, "ros2 ready")
+    procs.wait_ready("agent", "ros2 ready", 180)  # a loaded machine takes its time
     grids, paths = (
         MapSubscriber(session, mapping, "/map", OCCUPANCY_GRID),
         MapSubscriber(session, mapping, "/ros/trajectory", PATH),
@@ -253,7 +253,7 @@ def test_a_secured_router_passes_each_robots_ros_topics_and_the_map_and_no_forge
             "30",
             *EVERY_SCAN,
         )
-        procs.ready(agents[robot], "ros2 ready")
+        procs.wait_ready(f"agent-{robot}", "ros2 ready", 180)
     sessions = {
         r: zenoh.open(zenoh_config("client", connect=[router], config_file=str(security / f"robot-{r}.json5")))
         for r in ("a", "b")
@@ -309,7 +309,7 @@ def test_without_a_server_the_agent_stops_with_1_and_what_it_holds(procs, intel,
         "2",
         *EVERY_SCAN,
     )
-    procs.ready(agent, "ros2 ready")
+    procs.wait_ready("agent", "ros2 ready", 180)  # a loaded machine takes its time
     session = zenoh.open(zenoh_config("client", connect=[router]))
     robot = RosRobot(session, "rmw_zenoh")
     try:
