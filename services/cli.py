@@ -16,6 +16,7 @@ from services.cli_flags import (
     keyframe_flags,
     reconstruction_flags,
     resolve_config,
+    ros2_flags,
     server_http_flags,
     server_tls_token_flags,
     setting,
@@ -166,7 +167,7 @@ def cmd_server(args) -> int:
 
     _logging(args.verbose)
     config = resolve_config(args)
-    code = run_server(config.server, config.reconstruction)
+    code = run_server(config.server, config.reconstruction, config.ros2)
     # The store is closed and every Ack sent: a worker thread still rendering a large PNG for a
     # client that will get no answer must not keep the process from exiting (SIGTERM within seconds).
     sys.stdout.flush()
@@ -186,6 +187,10 @@ def cmd_agent(args) -> int:
 
     _logging(args.verbose)
     config = resolve_config(args)
+    if config.agent.source == "ros2":
+        from services.ros2.live import run_ros2_agent
+
+        return run_ros2_agent(config)
     return run_agent(config.agent, config.fit, config.keyframe)
 
 
@@ -333,6 +338,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="tracer threads that sample and trace tiles; a large update is split among them (default: one per core)",
     )
+    setting(
+        p,
+        "--ros-map",
+        "ros2.map_topic",
+        metavar="TOPIC",
+        help="publish the fleet map as nav_msgs/OccupancyGrid on this ROS 2 topic (and each robot's "
+        "nav_msgs/Path on /<robot>/trajectory)",
+    )
+    setting(p, "--ros-map-resolution", "ros2.map_resolution", type=float, metavar="M", help="cell size of --ros-map")
+    setting(p, "--ros-map-period", "ros2.map_period", type=float, metavar="S", help="at most one --ros-map per S s")
+    setting(p, "--ros-map-z", "ros2.map_z", metavar="ZMIN,ZMAX", help="3D maps: the height band projected to --ros-map")
+    ros2_flags(p)
     reconstruction_flags(p)
     config_flag(p)
     p.add_argument("-v", "--verbose", action="store_true")
@@ -362,8 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--source",
         "agent.source",
         metavar="FORMAT:PATH|sim:WORLD:INDEX:ROBOTS[:SEED]",
-        help="a log (FORMAT: carmen, kurt3d, xyz, pcd, ply, kitti or rosbag; guessed when left out), or robot INDEX "
-        "of a simulated fleet (needs --scans A:B); required, here or in --config",
+        help="a log (FORMAT: carmen, kurt3d, xyz, pcd, ply, kitti or rosbag; guessed when left out), robot INDEX "
+        "of a simulated fleet (needs --scans A:B), or ros2: live ROS 2 topics over Zenoh until SIGINT/SIGTERM "
+        "(--scan-topic, --odom-topic, --path-topic, --ros-*); required, here or in --config",
     )
     setting(
         p,
@@ -373,8 +391,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="corrected CARMEN log: publish odometry poses, then these as pose-graph updates",
     )
     setting(p, "--poses", "agent.poses", metavar="FILE", help="pcd, ply, kitti source: poses file, KITTI or TUM layout")
-    setting(p, "--scan-topic", "agent.scan_topic", metavar="T", help="rosbag source: LaserScan or PointCloud2 topic")
+    setting(
+        p, "--scan-topic", "agent.scan_topic", metavar="T", help="rosbag or ros2 source: LaserScan or PointCloud2 topic"
+    )
     setting(p, "--pose-topic", "agent.pose_topic", metavar="T", help="rosbag source: Odometry or PoseStamped topic")
+    setting(
+        p,
+        "--odom-topic",
+        "ros2.odom_topic",
+        metavar="T",
+        help="ros2 source: nav_msgs/Odometry of the robot body (default: poses from /tf and /tf_static)",
+    )
+    setting(
+        p,
+        "--path-topic",
+        "ros2.path_topic",
+        metavar="T",
+        help="ros2 source: nav_msgs/Path of a SLAM back end's optimised poses, sent as pose-graph updates",
+    )
+    ros2_flags(p)
     keyframe_flags(p)
     setting(p, "--scans", "agent.scans", metavar="A:B", help="slice of the (matched) scans; node ids stay global")
     setting(p, "--rate", "agent.rate", type=float, help="scans per second (0: as fast as fitted)")

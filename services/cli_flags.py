@@ -30,7 +30,7 @@ def config_flag(p: argparse.ArgumentParser) -> None:
         "--config",
         metavar="FILE",
         default=None,
-        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim] settings; "
+        help="a TOML or YAML file of [fit], [reconstruction], [server], [agent], [sim], [ros2] settings; "
         "flags given here win over it",
     )
 
@@ -142,3 +142,17 @@ def source_flags(p: argparse.ArgumentParser) -> None:
 def source_options(args: argparse.Namespace) -> dict:
     """The reader options given on the command line."""
     return {name: getattr(args, name) for name in SOURCE_OPTIONS if getattr(args, name) is not None}
+
+
+def ros2_flags(p: argparse.ArgumentParser) -> None:
+    """How a process meets ROS 2 over Zenoh (services/ros2): the key layout, domain, namespace, distro."""
+    setting(
+        p,
+        "--ros-mapping",
+        "ros2.mapping",
+        choices=["rmw_zenoh", "bridge"],
+        help="ROS 2 key layout: rmw_zenoh (Jazzy and later) or bridge (zenoh-bridge-ros2dds)",
+    )
+    setting(p, "--ros-domain", "ros2.domain", type=int, metavar="ID", help="ROS_DOMAIN_ID")
+    setting(p, "--ros-namespace", "ros2.namespace", metavar="NS", help="ROS namespace of relative topic names")
+    setting(p, "--ros-distro", "ros2.distro", choices=["iron", "jazzy", "kilted", "lyrical"], help="type hashes of")

@@ -2,7 +2,7 @@
 
 Each section is a frozen dataclass owned by its layer, which documents the units and validates
 the values (`fit`: gmm_core.FitConfig, `reconstruction`: gmm_core.reconstruct.ReconstructionConfig,
-`keyframe`: services.datasets.keyframes.KeyframeConfig, `server`, `agent`, `sim`:
+`keyframe`: services.datasets.keyframes.KeyframeConfig, `server`, `agent`, `sim`, `ros2`:
 services/*/config.py). Defaults live there once; a config file
 (TOML or YAML, `--config FILE`), command-line flags and the Python API all resolve to a
 `GmmapConfig`, in that order of precedence: defaults < file < flags. A bad value is a
@@ -26,6 +26,7 @@ from gmm_core.reconstruct import ReconstructionConfig
 from services.agent.config import AgentConfig
 from services.datasets.keyframes import KeyframeConfig
 from services.map_server.config import ServerConfig
+from services.ros2.config import Ros2Config
 from services.sim.config import SimConfig
 
 
@@ -41,6 +42,7 @@ class GmmapConfig:
     server: ServerConfig = field(default_factory=ServerConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
 
     def override(self, sections: Mapping[str, Mapping[str, Any]]) -> GmmapConfig:
         """This configuration with the values of `sections` ({section: {field: value}}) in place."""

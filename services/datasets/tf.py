@@ -87,6 +87,17 @@ class TransformBuffer:
         self._samples[child].append((stamp, pose))
         self._timed.pop(child, None)
 
+    def forget_before(self, stamp: float) -> None:
+        """Drop the timed samples before `stamp` but the last of each transform, so that a live
+        buffer stays bounded; a lookup at `stamp` or later gives what it gave before."""
+        for child, samples in self._samples.items():
+            older = [s for s in samples if s[0] < stamp]
+            if len(older) > 1:
+                newest = max(s[0] for s in older)
+                last = next(s for s in older if s[0] == newest)  # the first at equal stamps counts
+                self._samples[child] = [last] + [s for s in samples if s[0] >= stamp]
+                self._timed.pop(child, None)
+
     def _link(self, parent: str, child: str) -> None:
         if parent == child:
             raise DatasetError(f"transform from frame {child!r} to itself")

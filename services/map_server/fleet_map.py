@@ -16,7 +16,7 @@ from collections.abc import Collection, Sequence
 
 import numpy as np
 
-from gmm_core import Grid
+from gmm_core import Grid, Pose
 from gmm_core.occupancy import DEFAULT_PRIOR
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
@@ -121,6 +121,11 @@ class FleetMap:
         """World positions of the robot's sensor origins, in node order."""
         with self._lock:
             return self._nodes.trajectory(robot)
+
+    def world_poses(self, robot: str) -> list[tuple[int, Pose]]:
+        """(node, world pose of its sensor) of the robot's nodes, in node order."""
+        with self._lock:
+            return self._nodes.world_poses(robot)
 
     def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """World box of every node's reach (of all robots or of `robots`), or None when there is none."""

@@ -412,6 +412,11 @@ class NodeStore:
             return np.zeros((0, self.dim or 2))
         return np.array([r.world_pose(n).apply(n.origin[None])[0] for _, n in sorted(r.nodes.items())])
 
+    def world_poses(self, robot: str) -> list[tuple[int, Pose]]:
+        """(node, world pose of its sensor) of the robot's nodes, in node order."""
+        r = self.robots.get(robot)
+        return [] if r is None else [(k, r.world_pose(n)) for k, n in sorted(r.nodes.items())]
+
     def extent(self, robots: Collection[str] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """World box of every node's reach (of all robots or of `robots`), or None when there is none."""
         return self._index.extent(robots) if self._index is not None else None

@@ -35,6 +35,7 @@ from protocol import (
 from services.api import params  # one set of limits for both APIs
 from services.config import summary
 from services.host import release_free_memory
+from services.ros2.config import Ros2Config
 from services.zenoh_config import zenoh_config
 
 from .config import ServerConfig, split_address
@@ -189,9 +190,12 @@ def http_banner(options: ServerConfig, tokens) -> str:
     return f"{scheme}://{options.http} ({who})"
 
 
-def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig()) -> int:
+def run_server(
+    options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig(), ros2: Ros2Config | None = None
+) -> int:
     started = time.perf_counter()
-    print(f"gmmap server config: {summary(server=options, reconstruction=reconstruction)}", file=sys.stderr, flush=True)
+    sections = {"server": options, "reconstruction": reconstruction} | ({"ros2": ros2} if ros2 is not None else {})
+    print(f"gmmap server config: {summary(**sections)}", file=sys.stderr, flush=True)
     options.check_http()  # before anything is opened: a refusal leaves nothing behind
     tokens = None
     if options.http and options.http_tokens:
@@ -219,14 +223,22 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
     replayed = ingest.replay()
     ingest.start()
     http = None
+    ros_publisher = None
     try:
         config = zenoh_config(
             "peer", listen=options.listen, connect=options.zenoh_connect, config_file=options.zenoh_config
         )
+        ros_map = ros2 is not None and ros2.map_topic is not None
+        if ros_map:
+            from services.ros2.map_out import RosMapPublisher, timestamped
+
+            config = timestamped(config)
         try:
             zenoh_side = ZenohSide(state, ingest, config)
         except zenoh.ZError as error:
             raise OSError(f"cannot open the Zenoh session: {error}") from None
+        if ros_map:
+            ros_publisher = RosMapPublisher(zenoh_side.session, fleet_map, ros2, options.fleet)
         if options.http:
             http = start_http(state, options, reconstruction.variance, tokens)
         print(
@@ -248,6 +260,8 @@ def run_server(options: ServerConfig, reconstruction: ReconstructionConfig = Rec
             server.should_exit = True
             thread.join(1)
         http_s = time.perf_counter() - stopping
+        if ros_publisher is not None:
+            ros_publisher.close()
         if zenoh_side is not None:
             zenoh_side.stop_ingest()  # no new messages; then what can be stored in time is stored and acked
         ingest.stop()

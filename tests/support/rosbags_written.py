@@ -23,6 +23,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF = "tf2_msgs/msg/TFMessage"
+PATH = "nav_msgs/msg/Path"
 
 
 def typestore(kind: str):
@@ -106,6 +107,10 @@ class RosMessages:
                 for s, parent, child, p in transforms
             ]
         )
+
+    def path(self, stamp: float, frame: str, poses: list[tuple[float, Pose]]):
+        """A nav_msgs/Path of (stamp, pose) in `frame`, as a SLAM back end publishes its optimised poses."""
+        return self.t[PATH](header=self.header(stamp, frame), poses=[self.pose_stamped(s, frame, p) for s, p in poses])
 
     def point_cloud(self, stamp, frame, data: bytes, fields, point_step, width, height=1, row_step=None, big=False):
         """fields: (name, offset, datatype) triples (sensor_msgs/PointField constants)."""

@@ -91,3 +91,18 @@ def test_inconsistent_trees_are_named():
     buf.add_static("arm", "base", Pose.identity(3))
     with pytest.raises(DatasetError, match="loop"):
         buf.root("laser")
+
+
+def test_forgetting_old_samples_keeps_every_later_lookup():
+    rng = np.random.default_rng(5)
+    buffer, full = TransformBuffer(), TransformBuffer()
+    for stamp in np.sort(rng.uniform(0, 10, 40)):
+        pose = random_pose(rng)
+        for b in (buffer, full):
+            b.add("odom", "base", float(stamp), pose)
+    buffer.forget_before(6.0)
+    for stamp in np.linspace(6.0, full._samples["base"][-1][0], 17):
+        assert np.array_equal(matrix(buffer.lookup("odom", "base", stamp)), matrix(full.lookup("odom", "base", stamp)))
+    assert len(buffer._samples["base"]) < len(full._samples["base"])
+    with pytest.raises(Extrapolation):
+        buffer.lookup("odom", "base", 1.0)
