@@ -309,6 +309,7 @@ class Agent:
         """
         if not isinstance(pose, Pose):
             raise TypeError(f"pose: expected gmm_core.Pose, got {type(pose).__name__}")
+        self._sent_poses.check_dim(pose)  # a robot's nodes share one dimension
         points = _points("points", points, pose.dim)
         no_return = _points("no_return", np.empty((0, pose.dim)) if no_return is None else no_return, pose.dim)
         if not self._keyframes.keep(pose, stamp):
@@ -363,8 +364,9 @@ class Agent:
             self.refitted += 1
         o = self.options
         raw = raw or self._encoded(node, points, no_return, pose, stamp)
-        self.send("scan", node, scan_key(o.fleet, o.robot, node), raw)
+        # noted first: a scan of another dimension than this robot's earlier ones is refused unsent
         self._sent_poses.scan_sent(node, pose, self._reach(points, no_return, pose.dim) if reach is None else reach)
+        self.send("scan", node, scan_key(o.fleet, o.robot, node), raw)
         return True
 
     def _reach(self, points: np.ndarray, no_return: np.ndarray, dim: int) -> float:

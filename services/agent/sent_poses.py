@@ -47,6 +47,11 @@ class SentPoses:
     def __len__(self) -> int:
         return len(self._rows)
 
+    def check_dim(self, pose: Pose, name: str = "pose") -> None:
+        """ValueError naming `name` unless `pose` has the dimension of the nodes sent so far."""
+        if self._dim and pose.dim != self._dim:
+            raise ValueError(f"{name}: {pose.dim}D, the nodes sent before were {self._dim}D")
+
     def scan_sent(self, node: int, pose: Pose, reach: float) -> None:
         """A scan went out with `pose` (the server holds it until a correction) and beams ending
         at most `reach` from the sensor. A node sent again (a resend, a refit) keeps the pose held."""
@@ -88,8 +93,7 @@ class SentPoses:
         if self._table is None:
             self._dim = pose.dim
             self._table = np.empty((1024, pose.dim + pose.dim**2 + 1))
-        if pose.dim != self._dim:
-            raise ValueError(f"pose of node {node}: {pose.dim}D, the nodes sent before were {self._dim}D")
+        self.check_dim(pose, f"pose of node {node}")
         row = self._rows.get(node)
         if row is None:
             row = self._rows[node] = len(self._rows)

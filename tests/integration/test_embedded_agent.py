@@ -71,6 +71,9 @@ def test_add_scan_rejects_bad_input_and_a_restart_numbers_on(procs, data_dir, tm
         first = [agent.add_scan(s.hits, s.no_return, s.pose, s.stamp) for s in scans[:20]]
         assert first[0] == 0 and first[1] is None  # the second scan is not 0.5 m from the first
         assert agent.flush(60) == 0
+        with pytest.raises(ValueError, match="pose: 3D, the nodes sent before were 2D"):  # one dimension a robot
+            agent.add_scan(np.ones((5, 3)), None, Pose.from_quaternion([9.0, 0, 0], [1, 0, 0, 0]), 99.0)
+        assert agent.outbox.pending() == 0
     with Agent.open(config) as agent:  # the robot process restarts with its outbox
         again = [agent.add_scan(s.hits, s.no_return, s.pose, s.stamp) for s in scans[20:]]
         revision = agent.correct({0: Pose.from_xytheta(0.0, 0.0, 0.0)})

@@ -170,9 +170,14 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
         revised = time.time()
         with store_db(data) as db:
             graph = read_graph(db, "default", "ros")
-        corrected_poses = {n: graph.pose(n) for n in range(SCANS)}
+        # The nodes whose beam ends the Path moves by over agent.pose_tolerance (1 cm), at the corrected
+        # pose in 0.1 mm codes (protocol v3); the others keep their scan's own pose.
+        corrected_poses = {n: pose for n in range(SCANS) if (pose := graph.pose(n)) is not None}
+        print(f"{mapping}: {len(corrected_poses)} of {SCANS} nodes corrected")
+        assert len(corrected_poses) >= SCANS // 2
         for node, pose in corrected_poses.items():
-            assert_near(pose.as_xytheta(), intel.corrected[node], 1e-6)
+            assert_near(pose.as_xytheta(), intel.corrected[node], 1e-4)
+        served_poses = [intel.corrected[k] if k in corrected_poses else intel.odometry[k] for k in range(SCANS)]
         corrected_map = served(hport, grid)
         assert np.array_equal(corrected_map, stored_map(data, grid, corrected_poses))
         # /map: the grid the server publishes after the update, decoded by rosbags, as the HTTP tile
@@ -187,7 +192,7 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
         assert len(trajectory.poses) == SCANS
         for k, stamped in enumerate(trajectory.poses):
             p, q = stamped.pose.position, stamped.pose.orientation
-            assert_near(np.array([p.x, p.y, 2 * np.arctan2(q.z, q.w)]), intel.corrected[k], 1e-5)
+            assert_near(np.array([p.x, p.y, 2 * np.arctan2(q.z, q.w)]), served_poses[k], 1e-4)
         if mapping == "rmw_zenoh":  # the agent and the server in the ROS graph (`ros2 node list`, `ros2 topic info`)
             tokens = {str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**") if r.ok is not None}
             entities = {tuple(t.split("/")[5:10]) for t in tokens}

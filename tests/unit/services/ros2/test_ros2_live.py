@@ -156,7 +156,8 @@ def test_a_path_corrects_the_nodes_it_has_and_only_what_moved(live):
     same = Pose.from_quaternion([1.0, 0.0, 0.0], [1, 0, 0, 0])  # node 1's body where odometry has it
     ros.put("/slam/path", PATH, M.path(12.0, "map", [(10.0, body), (11.0, same), (99.0, body)]))
     [update] = ros.updates()
-    assert sorted(dict(update.poses)) == [0, 1]  # node 2's stamp is not on the path
+    # node 1's body is where its scan has it (nothing to send); node 2's stamp is not on the path
+    assert sorted(dict(update.poses)) == [0]
     expected = planar_pose(body.compose(MOUNT)).as_xytheta()
     np.testing.assert_allclose(dict(update.poses)[0].as_xytheta(), expected, atol=1e-9)
     ros.put("/slam/path", PATH, M.path(12.0, "map", [(10.0, body), (11.0, same)]))  # nothing moved since
@@ -164,16 +165,20 @@ def test_a_path_corrects_the_nodes_it_has_and_only_what_moved(live):
 
 
 def test_bridge_keys_name_no_type_so_the_bytes_tell_laser_scan_from_point_cloud(live):
-    ros = live(mapping="bridge")
-    ros.static()
-    ros.put("/tf", TF, M.tf([(s, "odom", "base_link", MOUNT) for s in (1.0, 3.0)]), key="tf")
-    ros.put("/scan", LASER_SCAN, M.laser_scan(2.0, "laser", RANGES, -1.0, 0.02, 0.0, 30.0), key="scan")
     cloud = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.5]], dtype=np.float32).tobytes()
     xyz = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
-    ros.put("/scan", POINT_CLOUD2, M.point_cloud(2.5, "laser", cloud, xyz, 12, 2), key="scan")
-    assert [m.dim for _, m in sorted(ros.scans().items())] == [2, 3]
-    ros.put("/scan", ODOMETRY, M.odometry(2.7, "odom", "base_link", MOUNT), key="scan")  # neither
-    assert ros.source.counts["bad"] == 1
+    samples = (
+        (LASER_SCAN, M.laser_scan(2.0, "laser", RANGES, -1.0, 0.02, 0.0, 30.0), 2),
+        (POINT_CLOUD2, M.point_cloud(2.0, "laser", cloud, xyz, 12, 2), 3),
+    )
+    for msgtype, message, dim in samples:  # a robot of each kind: an agent's nodes share one dimension
+        ros = live(mapping="bridge")
+        ros.static()
+        ros.put("/tf", TF, M.tf([(s, "odom", "base_link", MOUNT) for s in (1.0, 3.0)]), key="tf")
+        ros.put("/scan", msgtype, message, key="scan")
+        assert [m.dim for m in ros.scans().values()] == [dim]
+        ros.put("/scan", ODOMETRY, M.odometry(2.7, "odom", "base_link", MOUNT), key="scan")  # neither
+        assert ros.source.counts["bad"] == 1
 
 
 def test_a_long_run_keeps_its_poses_bounded_and_right(live):
