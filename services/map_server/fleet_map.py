@@ -106,7 +106,11 @@ class FleetMap:
 
     def cache_stats(self) -> dict:
         with self._lock:
-            return {**self._tiles.stats(), "sample_rays": self._samples.rays_held, "change_log": len(self._nodes.log)}
+            return {
+                **self._tiles.stats(),
+                "sample_components": self._samples.components_held,
+                "change_log": len(self._nodes.log),
+            }
 
     def robots(self) -> list[dict]:
         with self._lock:
