@@ -10,13 +10,16 @@ scan is traced once per box of the graded grid, not once per snapshot.
 from __future__ import annotations
 
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from gmm_core import Grid
 from gmm_core.occupancy import map_estimate
 from gmm_core.sampling import ScanSamples, scan_samples, scan_seed
 from gmm_core.scan_trace import GridCounts
 from protocol import ScanMessage, decode
+from services.host import cpu_cores
 from services.sim.fleet import robot_name
 from services.sim.record import RunRecord, blocks
 from services.sim.trajectory import path_pose
@@ -36,24 +39,28 @@ def offline_maps(record: RunRecord, stored_at: list[dict[str, int]], progress) -
     grid = record.grid
     samples: dict[tuple[str, int], ScanSamples] = {}
     out = {name: [np.empty(grid.array_shape, np.float32) for _ in stored_at] for name in poses}
-    for box, place in blocks(grid, BOX_CELLS):
-        for name, pose_of in poses.items():
-            counts = GridCounts(box)
-            added: dict[str, int] = defaultdict(int)
-            for j, stored in enumerate(stored_at):
-                for robot, count in stored.items():
-                    for node in range(added[robot], count):
-                        message = messages.get((robot, node))
-                        if message is None:
-                            continue
-                        if (robot, node) not in samples:
-                            seed = scan_seed(robot, node)  # the server's seed of the node
-                            samples[robot, node] = scan_samples(
-                                message.model, grid.resolution, seed, r.samples_per_cell
-                            )
-                        counts.add(samples[robot, node], pose_of(robot, node, message))
-                    added[robot] = max(added[robot], count)
-                hits, misses = counts.arrays()
-                out[name][j][place] = map_estimate(hits.astype(np.float32), misses.astype(np.float32), r.prior)
+
+    def rebuild(name: str, box: Grid, place: tuple[slice, ...]) -> None:
+        counts = GridCounts(box)
+        added: dict[str, int] = defaultdict(int)
+        for j, stored in enumerate(stored_at):
+            for robot, count in stored.items():
+                for node in range(added[robot], count):
+                    message = messages.get((robot, node))
+                    if message is None:
+                        continue
+                    if (robot, node) not in samples:
+                        seed = scan_seed(robot, node)  # the server's seed of the node
+                        samples[robot, node] = scan_samples(message.model, grid.resolution, seed, r.samples_per_cell)
+                    counts.add(samples[robot, node], poses[name](robot, node, message))
+                added[robot] = max(added[robot], count)
+            hits, misses = counts.arrays()
+            out[name][j][place] = map_estimate(hits.astype(np.float32), misses.astype(np.float32), r.prior)
+
+    # The tracer runs outside the GIL: the maps are rebuilt on threads of their own, box by box.
+    with ThreadPoolExecutor(min(len(poses), cpu_cores())) as pool:
+        for box, place in blocks(grid, BOX_CELLS):
+            for future in [pool.submit(rebuild, name, box, place) for name in poses]:
+                future.result()
     progress(len(stored_at))
     return out
