@@ -146,105 +146,137 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
     return at + n
 
 
-@njit(cache=True, error_model="numpy")  # 1 / 0 is inf: an axis the ray does not move along
+@njit(cache=True, inline="always", error_model="numpy")  # 1 / 0 is inf: an axis the ray does not move along
+def _trace_ray(ox, oy, oz, ex, ey, ez, w, is_hit, grid_origin, to_cells, dims, lo, hi, offset, cells, hits, misses):
+    """Trace one ray (ox, oy, oz) -> (ex, ey, ez) of weight w: cell (x, y, z) of the grid is entry
+    (z ny + y) nx + x - offset of hits and misses, which hold the cells [lo, hi] (float, inclusive)
+    along the slowest axis; `cells`: scratch of nx + ny + nz + 4 entries."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    sy, sz = np.float64(nx), np.float64(nx * ny)  # strides of y and z in the flat index
+    # Cell units: the grid is [0, n) along each axis and the ray is u(t) = uo + t ud, t in [0, 1].
+    uox, udx = (ox - grid_origin[0]) * to_cells, (ex - ox) * to_cells
+    uoy, udy = (oy - grid_origin[1]) * to_cells, (ey - oy) * to_cells
+    uoz, udz = (oz - grid_origin[2]) * to_cells, (ez - oz) * to_cells
+    ix, iy, iz = 1.0 / udx, 1.0 / udy, 1.0 / udz
+    t0, t1 = _slab(uox, udx, ix, nx, 0.0, 1.0)
+    t0, t1 = _slab(uoy, udy, iy, ny, t0, t1)
+    t0, t1 = _slab(uoz, udz, iz, nz, t0, t1)
+    if t0 > t1:
+        return
+    x, x_last, step_x, bx = _axis(uox, udx, t0, t1, nx)
+    y, y_last, step_y, by = _axis(uoy, udy, t0, t1, ny)
+    z, z_last, step_z, bz = _axis(uoz, udz, t0, t1, nz)
+    n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
+    tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
+    cells[0] = (z * ny + y) * nx + x - offset
+    at = _enter(
+        cells,
+        1,
+        n_x,
+        np.float64(x + step_x - offset),
+        np.float64(step_x),
+        uoy + tx * udy,
+        step_x * ix * udy,
+        lo[1],
+        hi[1],
+        sy,
+        uoz + tx * udz,
+        step_x * ix * udz,
+        lo[2],
+        hi[2],
+        sz,
+    )
+    at = _enter(
+        cells,
+        at,
+        n_y,
+        (y + step_y) * sy - offset,
+        step_y * sy,
+        uox + ty * udx,
+        step_y * iy * udx,
+        lo[0],
+        hi[0],
+        1.0,
+        uoz + ty * udz,
+        step_y * iy * udz,
+        lo[2],
+        hi[2],
+        sz,
+    )
+    at = _enter(
+        cells,
+        at,
+        n_z,
+        (z + step_z) * sz - offset,
+        step_z * sz,
+        uox + tz * udx,
+        step_z * iz * udx,
+        lo[0],
+        hi[0],
+        1.0,
+        uoy + tz * udy,
+        step_z * iz * udy,
+        lo[1],
+        hi[1],
+        sy,
+    )
+    # The end cell: the last one of the axis whose last boundary comes latest (the start cell
+    # when the ray crosses none). Swapped to the back, it stays out of the loop of misses.
+    t_x = tx + (n_x - 1) * abs(ix) if n_x > 0 else -1.0
+    t_y = ty + (n_y - 1) * abs(iy) if n_y > 0 else -1.0
+    t_z = tz + (n_z - 1) * abs(iz) if n_z > 0 else -1.0
+    x_ends = (t_x >= t_y) & (t_x >= t_z)
+    y_ends = (t_y >= t_z) & ~x_ends
+    end = n_x if x_ends else (n_x + n_y if y_ends else at - 1)
+    end_cell = cells[end]
+    cells[end] = cells[at - 1]
+    for i in range(at - 1):
+        misses[cells[i]] += w
+    # The end cell holds the sample only when the ray ends inside the grid (t1 == 1).
+    if is_hit and t1 >= 1.0:
+        hits[end_cell] += w
+    else:
+        misses[end_cell] += w
+
+
+@njit(cache=True, inline="always")
+def box_bounds(box):
+    """The first and last cell along each axis of the cells [box[0], box[1]), as floats (_trace_ray's lo, hi)."""
+    lo, hi = np.empty(3), np.empty(3)
+    for a in range(3):
+        lo[a], hi[a] = np.float64(box[0, a]), np.float64(box[1, a] - 1)
+    return lo, hi
+
+
+@njit(cache=True, error_model="numpy")
 def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, dims, box, offset, hits, misses):
     """Trace rays first_ray:last_ray; cell (x, y, z) of the grid is entry (z ny + y) nx + x - offset
     of hits and misses, which hold the cells of `box` along the slowest axis."""
-    nx, ny, nz = dims[0], dims[1], dims[2]
-    sy, sz = np.float64(nx), np.float64(nx * ny)  # strides of y and z in the flat index
-    x_lo, y_lo, z_lo = np.float64(box[0, 0]), np.float64(box[0, 1]), np.float64(box[0, 2])
-    x_hi, y_hi, z_hi = np.float64(box[1, 0] - 1), np.float64(box[1, 1] - 1), np.float64(box[1, 2] - 1)
-    gx, gy, gz = grid_origin[0], grid_origin[1], grid_origin[2]
+    lo, hi = box_bounds(box)
     to_cells = 1.0 / resolution
-    cells = np.empty(nx + ny + nz + 4, np.uint64)  # start cell, crossings, _enter's 3 of scratch
+    cells = np.empty(dims[0] + dims[1] + dims[2] + 4, np.uint64)  # start cell, crossings, _enter's 3 of scratch
     for r in range(first_ray, last_ray):
         code = np.int64(rays[r, CODE])
-        ox, oy, oz = origins[code >> 1, 0], origins[code >> 1, 1], origins[code >> 1, 2]
-        # Cell units: the grid is [0, n) along each axis and the ray is u(t) = uo + t ud, t in [0, 1].
-        uox, udx = (ox - gx) * to_cells, (rays[r, END] - ox) * to_cells
-        uoy, udy = (oy - gy) * to_cells, (rays[r, END + 1] - oy) * to_cells
-        uoz, udz = (oz - gz) * to_cells, (rays[r, END + 2] - oz) * to_cells
-        ix, iy, iz = 1.0 / udx, 1.0 / udy, 1.0 / udz
-        t0, t1 = _slab(uox, udx, ix, nx, 0.0, 1.0)
-        t0, t1 = _slab(uoy, udy, iy, ny, t0, t1)
-        t0, t1 = _slab(uoz, udz, iz, nz, t0, t1)
-        if t0 > t1:
-            continue
-        x, x_last, step_x, bx = _axis(uox, udx, t0, t1, nx)
-        y, y_last, step_y, by = _axis(uoy, udy, t0, t1, ny)
-        z, z_last, step_z, bz = _axis(uoz, udz, t0, t1, nz)
-        n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
-        tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
-        cells[0] = (z * ny + y) * nx + x - offset
-        at = _enter(
+        o = code >> 1
+        _trace_ray(
+            origins[o, 0],
+            origins[o, 1],
+            origins[o, 2],
+            rays[r, END],
+            rays[r, END + 1],
+            rays[r, END + 2],
+            rays[r, WEIGHT],
+            code & 1,
+            grid_origin,
+            to_cells,
+            dims,
+            lo,
+            hi,
+            offset,
             cells,
-            1,
-            n_x,
-            np.float64(x + step_x - offset),
-            np.float64(step_x),
-            uoy + tx * udy,
-            step_x * ix * udy,
-            y_lo,
-            y_hi,
-            sy,
-            uoz + tx * udz,
-            step_x * ix * udz,
-            z_lo,
-            z_hi,
-            sz,
+            hits,
+            misses,
         )
-        at = _enter(
-            cells,
-            at,
-            n_y,
-            (y + step_y) * sy - offset,
-            step_y * sy,
-            uox + ty * udx,
-            step_y * iy * udx,
-            x_lo,
-            x_hi,
-            1.0,
-            uoz + ty * udz,
-            step_y * iy * udz,
-            z_lo,
-            z_hi,
-            sz,
-        )
-        at = _enter(
-            cells,
-            at,
-            n_z,
-            (z + step_z) * sz - offset,
-            step_z * sz,
-            uox + tz * udx,
-            step_z * iz * udx,
-            x_lo,
-            x_hi,
-            1.0,
-            uoy + tz * udy,
-            step_z * iz * udy,
-            y_lo,
-            y_hi,
-            sy,
-        )
-        # The end cell: the last one of the axis whose last boundary comes latest (the start cell
-        # when the ray crosses none). Swapped to the back, it stays out of the loop of misses.
-        t_x = tx + (n_x - 1) * abs(ix) if n_x > 0 else -1.0
-        t_y = ty + (n_y - 1) * abs(iy) if n_y > 0 else -1.0
-        t_z = tz + (n_z - 1) * abs(iz) if n_z > 0 else -1.0
-        x_ends = (t_x >= t_y) & (t_x >= t_z)
-        y_ends = (t_y >= t_z) & ~x_ends
-        end = n_x if x_ends else (n_x + n_y if y_ends else at - 1)
-        end_cell = cells[end]
-        cells[end] = cells[at - 1]
-        w = rays[r, WEIGHT]
-        for i in range(at - 1):
-            misses[cells[i]] += w
-        # The end cell holds the sample only when the ray ends inside the grid (t1 == 1).
-        if code & 1 and t1 >= 1.0:
-            hits[end_cell] += w
-        else:
-            misses[end_cell] += w
 
 
 @njit(cache=True, parallel=True, nogil=True)  # the caller's other Python threads run while it traces

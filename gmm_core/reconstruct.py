@@ -1,7 +1,8 @@
 """Occupancy evidence on a grid from many scans with world poses (Sec. III-C3, Algorithm 1).
 
 `reconstruct` samples each scan's mixtures in the scan frame, moves the samples and the sensor
-origin by the scan's pose (the points-level form of Eq. 2) and ray-traces them; `count_beams`
+origin by the scan's pose (the points-level form of Eq. 2) and ray-traces them
+(gmm_core.scan_trace); `count_beams`
 is the plain counting occupancy grid from the raw beams, through the same ray tracer.
 """
 
@@ -16,8 +17,9 @@ from gmm_core.grid import Grid
 from gmm_core.occupancy import DEFAULT_PRIOR, DEFAULT_VARIANCE, check_variance
 from gmm_core.pose import Pose
 from gmm_core.raytrace import trace_rays
-from gmm_core.sampling import scan_rays
+from gmm_core.sampling import scan_samples
 from gmm_core.scan import ScanModel
+from gmm_core.scan_trace import GridCounts
 from gmm_core.validation import require_number
 
 RAYS_PER_BATCH = 2_000_000  # bounds memory: rays are traced in batches and their counts added
@@ -86,13 +88,6 @@ def trace_groups(
     return hits.astype(dtype, copy=False), misses.astype(dtype, copy=False)
 
 
-def _reaches(grid: Grid, origin: np.ndarray, ends: np.ndarray) -> bool:
-    """Whether the box around the sensor origin and the ray ends meets the grid."""
-    lo = np.minimum(origin, ends.min(axis=0)) if len(ends) else origin
-    hi = np.maximum(origin, ends.max(axis=0)) if len(ends) else origin
-    return bool(np.all(lo <= grid.upper) and np.all(hi >= grid.origin))
-
-
 def reconstruct(
     grid: Grid,
     scans: Iterable[tuple[ScanModel, Pose, int]],
@@ -100,23 +95,20 @@ def reconstruct(
     samples_per_cell: float = 1.0,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Expected hit and miss counts on `grid` from (scan model, world pose, seed) triples.
+    """Expected hit and miss counts (float32) on `grid` from (scan model, world pose, seed) triples.
 
     Samples are drawn in the scan frame from `seed`, so a pose correction moves the same
-    samples and the same query always gives the same counts. `progress(n)` is told as each
-    batch of n scans is traced.
+    samples and the same query always gives the same counts; they are traced as they are drawn,
+    and only those of components that can reach the grid (gmm_core.scan_trace). `progress(1)`
+    is told as each scan is traced.
     """
-
-    def rays():
-        for model, pose, seed in scans:
-            ends, weights, is_hit = scan_rays(model, grid.resolution, seed, samples_per_cell)
-            origin, ends = pose.apply(model.origin[None])[0], pose.apply(ends)
-            if len(ends) and _reaches(grid, origin, ends):
-                yield origin, ends, weights, is_hit
-            elif progress is not None:
-                progress(1)
-
-    return trace_groups(grid, rays(), progress)
+    counts = GridCounts(grid)
+    for model, pose, seed in scans:
+        counts.add(scan_samples(model, grid.resolution, seed, samples_per_cell), pose)
+        if progress is not None:
+            progress(1)
+    hits, misses = counts.arrays()
+    return hits.astype(np.float32), misses.astype(np.float32)
 
 
 def count_beams(

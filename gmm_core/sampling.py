@@ -4,11 +4,19 @@ Each component k gets n_k samples, enough to put a few in every cell it covers a
 resolution, and each sample carries the weight N pi_k / n_k. Summed along rays, the weights
 estimate the expected number of beams (Eq. 10) whatever n_k is: more samples only lower the
 Monte-Carlo variance, so maps at different resolutions agree in their counts.
+
+Samples come from a counter-based generator: the normals of sample j of a mixture are a hash of
+(the mixture's key, j), so any component's samples can be drawn alone, in any order. A query
+then draws only the components whose rays can reach its grid (gmm_core.scan_trace), and a
+sample is the same whichever others were drawn. Each normal is clipped to [-Z_MAX, Z_MAX]: every
+sample of a component lies in a box known before drawing it (`sample_bounds`), which is what
+makes skipping a component exact.
 """
 
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -35,47 +43,176 @@ def samples_per_component(mixture: Mixture, resolution: float, samples_per_cell:
     return np.clip(n, 1, MAX_SAMPLES_PER_COMPONENT).astype(np.int64)
 
 
-def sample_mixture(mixture: Mixture, counts: np.ndarray, rng: np.random.Generator):
-    """`counts[k]` samples of each component and their weights N pi_k / counts[k]."""
-    chol = np.linalg.cholesky(mixture.covariances)
-    z = rng.standard_normal((int(counts.sum()), mixture.dim))
+Z_MAX = 4.0  # normals are clipped here: 6e-5 of them per coordinate move to the edge of the box
+BOX_SLACK = 1e-6  # m added to sample boxes: round-off in placing a sample stays far below it
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # splitmix64's increment
+
+
+@njit(cache=True, inline="always")
+def _uniform(key, counter):
+    """The splitmix64 output `counter` of the stream `key`, as a float in (0, 1)."""
+    x = key + counter * _GOLDEN
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    return (np.float64(x >> np.uint64(11)) + 0.5) * 2.0**-53
+
+
+# Acklam's rational approximation of the normal quantile (relative error below 1.2e-9): cheaper
+# than Box-Muller's logarithm, square root and sine per pair, one uniform per normal.
+_A = (
+    -3.969683028665376e01,
+    2.209460984245205e02,
+    -2.759285104469687e02,
+    1.383577518672690e02,
+    -3.066479806614716e01,
+    2.506628277459239e00,
+)
+_B = (-5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02, 6.680131188771972e01, -1.328068155288572e01)
+_C = (
+    -7.784894002430293e-03,
+    -3.223964580411365e-01,
+    -2.400758277161838e00,
+    -2.549732539343734e00,
+    4.374664141464968e00,
+    2.938163982698783e00,
+)
+_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e00, 3.754408661907416e00)
+_P_TAIL = 0.02425
+
+
+@njit(cache=True, inline="always")
+def _tail(q):
+    """The quantile of p = exp(-q^2 / 2) (a lower tail), by Acklam's outer approximation."""
+    c, d = _C, _D
+    return (((((c[0] * q + c[1]) * q + c[2]) * q + c[3]) * q + c[4]) * q + c[5]) / (
+        (((d[0] * q + d[1]) * q + d[2]) * q + d[3]) * q + 1.0
+    )
+
+
+@njit(cache=True, inline="always")
+def normal_quantile(p):
+    """Phi^-1(p) for p in (0, 1), within 1.2e-9 relative (Acklam)."""
+    if p < _P_TAIL:
+        return _tail(np.sqrt(-2.0 * np.log(p)))
+    if p > 1.0 - _P_TAIL:
+        return -_tail(np.sqrt(-2.0 * np.log(1.0 - p)))
+    a, b = _A, _B
+    q = p - 0.5
+    r = q * q
+    return (
+        (((((a[0] * r + a[1]) * r + a[2]) * r + a[3]) * r + a[4]) * r + a[5])
+        * q
+        / (((((b[0] * r + b[1]) * r + b[2]) * r + b[3]) * r + b[4]) * r + 1.0)
+    )
+
+
+@njit(cache=True, inline="always")
+def sample_normals(key, j, z):
+    """z[:d] = the standard normals of sample j of stream `key`: the quantiles of the uniforms
+    4j + a of the stream, each clipped to [-Z_MAX, Z_MAX]."""
+    base = np.uint64(4) * np.uint64(j)
+    for a in range(z.shape[0]):
+        z[a] = min(max(normal_quantile(_uniform(key, base + np.uint64(a))), -Z_MAX), Z_MAX)
+
+
+@dataclass(frozen=True)
+class MixtureSamples:
+    """What to draw of one mixture: counts[k] samples of component k, each of weight weights[k],
+    at means[k] + chol[k] z with the normals z of sample offsets[k] + i of stream `key`."""
+
+    means: np.ndarray  # (K, d)
+    chol: np.ndarray  # (K, d, d) lower Cholesky factors of the covariances
+    counts: np.ndarray  # (K,) int64
+    offsets: np.ndarray  # (K,) int64: index of each component's first sample
+    weights: np.ndarray  # (K,) float64, multiples of WEIGHT_QUANTUM
+    key: np.uint64
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.counts.sum())
+
+
+@dataclass(frozen=True)
+class ScanSamples:
+    """The samples of a scan model at one resolution (both mixtures), in the scan frame."""
+
+    occupied: MixtureSamples  # samples end in a hit
+    free: MixtureSamples  # samples only add misses (no-return beams)
+    origin: np.ndarray  # (d,) sensor origin
+
+    @property
+    def n_samples(self) -> int:
+        return self.occupied.n_samples + self.free.n_samples
+
+
+def sample_bounds(mixture: Mixture) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box (lo, hi) holding every sample of every component: mu_k +- Z_MAX sum_b |L_k,ab|
+    (the normals are clipped), widened by a micrometre against round-off."""
+    if mixture.n_components == 0:
+        return np.full(mixture.dim, np.inf), np.full(mixture.dim, -np.inf)
+    half = Z_MAX * np.abs(np.linalg.cholesky(mixture.covariances)).sum(axis=2) + BOX_SLACK
+    return (mixture.means - half).min(axis=0), (mixture.means + half).max(axis=0)
+
+
+def mixture_samples(mixture: Mixture, counts: np.ndarray, key: np.uint64) -> MixtureSamples:
+    """The samples `counts[k]` of each component, weights N pi_k / counts[k] (quantised)."""
+    counts = np.ascontiguousarray(counts, dtype=np.int64)
     weights = np.round(mixture.support * mixture.weights / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
-    return _place(mixture.means, chol, counts, weights, z)
+    offsets = np.cumsum(counts) - counts
+    chol = np.linalg.cholesky(mixture.covariances) if mixture.n_components else mixture.covariances
+    return MixtureSamples(mixture.means, np.ascontiguousarray(chol), counts, offsets, weights, key)
+
+
+def scan_samples(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0) -> ScanSamples:
+    """The samples of both mixtures of `model` at `resolution`, from `seed`: the same (model,
+    resolution, seed), the same samples."""
+    keys = np.random.SeedSequence([seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
+    occupied, free = model.occupied, model.free
+    return ScanSamples(
+        mixture_samples(occupied, samples_per_component(occupied, resolution, samples_per_cell), keys[0]),
+        mixture_samples(free, samples_per_component(free, resolution, samples_per_cell), keys[1]),
+        model.origin,
+    )
 
 
 @njit(cache=True, nogil=True)
-def _place(means, chol, counts, weights, z):
-    """Sample i of component k at means[k] + chol[k] z[i], with weight weights[k]; outside the
-    GIL, so a map server's tracer threads draw samples in parallel."""
-    n, d = z.shape
+def _place(means, chol, counts, offsets, weights, key):
+    """Every sample: sample i of component k at means[k] + chol[k] z(offsets[k] + i), weight weights[k]."""
+    n, d = np.sum(counts), means.shape[1]
     points = np.empty((n, d))
     sample_weights = np.empty(n)
+    z = np.empty(d)
     i = 0
     for k in range(counts.shape[0]):
-        for _ in range(counts[k]):
+        for s in range(counts[k]):
+            sample_normals(key, offsets[k] + s, z)
             for a in range(d):
-                s = 0.0
+                p = 0.0
                 for b in range(a + 1):  # lower triangular
-                    s += chol[k, a, b] * z[i, b]
-                points[i, a] = means[k, a] + s
+                    p += chol[k, a, b] * z[b]
+                points[i, a] = means[k, a] + p
             sample_weights[i] = weights[k]
             i += 1
     return points, sample_weights
+
+
+def draw(samples: MixtureSamples) -> tuple[np.ndarray, np.ndarray]:
+    """Every sample of a mixture in the scan frame, and its weight."""
+    s = samples
+    return _place(s.means, s.chol, s.counts, s.offsets, s.weights, s.key)
 
 
 def scan_rays(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0):
     """Ray end points in the scan frame, their weights, and whether each ends in a hit.
 
     Samples of the occupied mixture end in a hit; samples of the free mixture (no-return
-    beams) only add misses. The same (model, resolution, seed) always gives the same rays.
+    beams) only add misses. The same (model, resolution, seed) always gives the same rays, the
+    samples that gmm_core.scan_trace traces without holding them.
     """
-    rng = np.random.default_rng([seed, int(round(resolution * 1e6))])
-    occ_points, occ_w = sample_mixture(
-        model.occupied, samples_per_component(model.occupied, resolution, samples_per_cell), rng
-    )
-    free_points, free_w = sample_mixture(
-        model.free, samples_per_component(model.free, resolution, samples_per_cell), rng
-    )
+    samples = scan_samples(model, resolution, seed, samples_per_cell)
+    occ_points, occ_w = draw(samples.occupied)
+    free_points, free_w = draw(samples.free)
     ends = np.concatenate([occ_points, free_points])
     weights = np.concatenate([occ_w, free_w])
     is_hit = np.concatenate([np.ones(len(occ_w), bool), np.zeros(len(free_w), bool)])

@@ -15,32 +15,56 @@ from gmm_core.analytic.evidence_3d import cell_evidence_3d
 from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate
 
 
+@njit(cache=True)
+def _evidence_at_cell(
+    c, centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means, reaches,
+    half_angles, hits, misses, fx, fy,
+):  # fmt: skip
+    """hits[c], misses[c]: expected hits and misses at cell c from every component that may reach it."""
+    cell = centers[c]
+    rho = half * math.sqrt(centers.shape[1])
+    for k in range(means.shape[0]):
+        if not may_reach(cell, rho, sensors[k], means[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
+            continue
+        if centers.shape[1] == 2:
+            h, m = cell_evidence_2d(
+                means[k], covs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], half, fx, fy
+            )
+        else:
+            h, m = cell_evidence_3d(
+                means[k], evals[k], evecs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], cell[2], half
+            )
+        hits[c] += counts[k] * h
+        misses[c] += counts[k] * m
+
+
 @njit(cache=True, parallel=True)
 def _evidence_at_cells(
     centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means, reaches, half_angles
 ):
-    """Expected hits and misses at each cell from every component that may reach it."""
-    n_cells, dim = centers.shape
-    hits = np.zeros(n_cells)
-    misses = np.zeros(n_cells)
-    rho = half * math.sqrt(dim)
-    for c in prange(n_cells):
-        fx = np.empty(4)
-        fy = np.empty(4)
-        cell = centers[c]
-        for k in range(means.shape[0]):
-            if not may_reach(cell, rho, sensors[k], means[k], axes[k], dist_means[k], reaches[k], half_angles[k]):
-                continue
-            if dim == 2:
-                h, m = cell_evidence_2d(
-                    means[k], covs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], half, fx, fy
-                )
-            else:
-                h, m = cell_evidence_3d(
-                    means[k], evals[k], evecs[k], isos[k], sensors[k], max_range[k], cell[0], cell[1], cell[2], half
-                )
-            hits[c] += counts[k] * h
-            misses[c] += counts[k] * m
+    """Expected hits and misses at each cell, the cells shared among numba's threads."""
+    hits, misses = np.zeros(centers.shape[0]), np.zeros(centers.shape[0])
+    for c in prange(centers.shape[0]):
+        _evidence_at_cell(
+            c, centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means,
+            reaches, half_angles, hits, misses, np.empty(4), np.empty(4),
+        )  # fmt: skip
+    return hits, misses
+
+
+@njit(cache=True, nogil=True)
+def _evidence_at_cells_here(
+    centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means, reaches, half_angles
+):
+    """_evidence_at_cells on the calling thread alone, outside numba's threading layer (a map
+    server's request threads may call it at the same time)."""
+    hits, misses = np.zeros(centers.shape[0]), np.zeros(centers.shape[0])
+    fx, fy = np.empty(4), np.empty(4)
+    for c in range(centers.shape[0]):
+        _evidence_at_cell(
+            c, centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means,
+            reaches, half_angles, hits, misses, fx, fy,
+        )  # fmt: skip
     return hits, misses
 
 
@@ -75,14 +99,17 @@ def component_evidence(
     )
 
 
-def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndarray, np.ndarray]:
+def scan_evidence(
+    models_with_poses, centers, cell_size: float, *, parallel: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Expected hit and miss counts (N_H, N_M of Eq. 11) at each cell from scan models with world
-    poses, a list of (ScanModel, Pose). Only components whose 5-sigma cone reaches a cell count."""
+    poses, a list of (ScanModel, Pose). Only components whose 5-sigma cone reaches a cell count.
+    `parallel`: on numba's threads; False: on the calling thread alone (safe from many threads)."""
     models_with_poses = list(models_with_poses)
     dim = models_with_poses[0][0].dim if models_with_poses else np.shape(centers)[-1]
     centers, half = as_cells(centers, cell_size, dim)
     comp = world_components(models_with_poses, dim)
-    return _evidence_at_cells(
+    return (_evidence_at_cells if parallel else _evidence_at_cells_here)(
         centers,
         half,
         comp.means,
@@ -97,11 +124,14 @@ def scan_evidence(models_with_poses, centers, cell_size: float) -> tuple[np.ndar
     )
 
 
-def occupancy_at_cells(models_with_poses, centers, cell_size: float, prior: float = DEFAULT_PRIOR) -> np.ndarray:
+def occupancy_at_cells(
+    models_with_poses, centers, cell_size: float, prior: float = DEFAULT_PRIOR, *, parallel: bool = True
+) -> np.ndarray:
     """p(occupied) of each cell, Eq. 11, from the analytic evidence of scan models with world poses.
 
     models_with_poses: list of (ScanModel, Pose); centers (M, d); cell_size: side of the square
-    or cube; prior: N_p. Local occupancy evaluation for a few cells, without a grid.
+    or cube; prior: N_p; parallel: as scan_evidence. Local occupancy evaluation for a few cells,
+    without a grid.
     """
-    hits, misses = scan_evidence(models_with_poses, centers, cell_size)
+    hits, misses = scan_evidence(models_with_poses, centers, cell_size, parallel=parallel)
     return map_estimate(hits, misses, prior)

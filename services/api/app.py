@@ -13,6 +13,7 @@ import threading
 import time
 from enum import Enum
 from pathlib import Path
+from typing import Literal
 
 import fastapi_offline
 import numpy as np
@@ -42,7 +43,7 @@ from .auth import Access, BearerAuth, access_dependency
 from .encoded import EncodedTiles
 from .limits import MAX_BODY, BodyLimit
 from .params import ApiError
-from .points import BLOCK, MAX_GRIDS, plan, point_probabilities
+from .points import BLOCK, MAX_ANALYTIC_POINTS, MAX_GRIDS, choose_method, plan, point_probabilities
 
 VIEWER = Path(__file__).with_name("static") / "viewer.html"
 # Swagger UI's files as the fastapi-offline package ships them (a Swagger UI that reads OpenAPI 3.1).
@@ -89,6 +90,13 @@ def _range(lo: float, hi: float) -> dict:
     return {"json_schema_extra": {"minimum": lo, "maximum": hi}}
 
 
+Method = Literal["auto", "analytic", "mc"]  # of /v1/occupancy/points: services/api/points.py
+METHOD_DESCRIPTION = (
+    "mc: Monte-Carlo grids; analytic: the expected evidence at each point's cell (Eq. 3-10), per "
+    "point; auto: analytic where it is cheaper (few scattered points), else mc"
+)
+
+
 class PointsBody(BaseModel):
     model_config = ConfigDict(strict=True)  # JSON numbers only: no true for 1.0, no "0.1" for 0.1
 
@@ -101,6 +109,7 @@ class PointsBody(BaseModel):
     )
     resolution: float = Field(**_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION))
     robots: list[str] | None = Field(None, json_schema_extra={"items": {"pattern": params.ID_PATTERN}})
+    method: Method = "auto"
 
 
 class ErrorBody(BaseModel):
@@ -349,10 +358,14 @@ def create_app(
         state.metrics.tile_age.observe(answer.age)
         return Response(body, media_type=MEDIA_TYPES[format], headers=headers)
 
-    def points_reply(pts: np.ndarray, res: float, selected, field: str) -> dict:
+    def points_reply(pts: np.ndarray, res: float, selected, field: str, method: str) -> dict:
         start = time.perf_counter()
         grids = plan(pts, res)
-        if len(grids) > MAX_GRIDS:
+        if method == "auto":
+            method = choose_method(len(pts), len(grids), pts.shape[1])
+        if method == "analytic" and len(pts) > MAX_ANALYTIC_POINTS:
+            raise ApiError(field, f"at most {MAX_ANALYTIC_POINTS:,} points per request with method analytic")
+        if method == "mc" and len(grids) > MAX_GRIDS:
             raise ApiError(
                 field,
                 f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per "
@@ -360,11 +373,11 @@ def create_app(
                 f"`resolution` (such as cell centres) share one per {BLOCK}x{BLOCK} cells",
             )
         try:
-            prob = point_probabilities(fmap, pts, res, selected, grids)
+            prob = point_probabilities(fmap, pts, res, selected, grids, method)
         except ValueError as e:
             raise ApiError(field, str(e)) from None
         state.metrics.query_seconds.observe(time.perf_counter() - start)
-        return {"resolution": res, "points": pts.tolist(), "probabilities": prob.tolist()}
+        return {"resolution": res, "points": pts.tolist(), "probabilities": prob.tolist(), "method": method}
 
     @app.get("/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point")
     def occupancy_points(
@@ -382,6 +395,7 @@ def create_app(
             description="comma-separated robot ids; every robot when absent",
             json_schema_extra={"pattern": params.ROBOTS_PATTERN},
         ),
+        method: Method = Query("auto", description=METHOD_DESCRIPTION),
         who: Access = Depends(access),
     ) -> dict:
         if (xy is None) == (xyz is None):
@@ -392,7 +406,7 @@ def create_app(
             raise ApiError(field, f"at most {params.MAX_POINTS:,} points per request")
         params.check_dimension(d, fmap.dim, field)
         pts = params.points(params.numbers(text, field), d, field)
-        return points_reply(pts, res, who.select(params.robots(robots)), field)
+        return points_reply(pts, res, who.select(params.robots(robots)), field, method)
 
     @app.post("/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)")
     def occupancy_points_post(body: PointsBody, who: Access = Depends(access)) -> dict:
@@ -402,7 +416,7 @@ def create_app(
             raise ApiError("points", "must be a non-empty list of [x, y] or [x, y, z]")
         params.check_dimension(d, fmap.dim, "points")
         pts = params.points(body.points, d, "points")
-        return points_reply(pts, res, who.select(params.robots(body.robots)), "points")
+        return points_reply(pts, res, who.select(params.robots(body.robots)), "points", body.method)
 
     # -- robots and the map -----------------------------------------------------------------
     @app.get("/v1/robots", summary="Every robot of the fleet")

@@ -3,8 +3,13 @@
 Points whose cells lie on one common lattice (for instance the centres of a grid) are evaluated
 together, one small grid per block of BLOCK cells along each axis, so a dense set of points costs
 about as much as the grid they sample. Other points get a grid of one cell each, and
-cost a few milliseconds each: a request may need at most MAX_GRIDS grids. Monte Carlo, as
-every query of the fleet map, until the analytic evaluation is wired in.
+cost a few milliseconds each: a request may need at most MAX_GRIDS grids.
+
+`method`: mc, those Monte-Carlo grids; analytic, the expected evidence of every component at
+each point's cell (Eq. 3-10, gmm_core.analytic.cells), no grid and no sampling error, at a cost
+per point; auto, analytic where that is cheaper: when one point costs less than
+ANALYTIC_POINT_IN_GRIDS Monte-Carlo grids (measured by bench/points.py, docs/BENCHMARKS.md), so
+few scattered points go analytic and cell centres of a lattice go Monte Carlo.
 """
 
 from __future__ import annotations
@@ -15,11 +20,17 @@ from collections.abc import Sequence
 import numpy as np
 
 from gmm_core import Grid
+from gmm_core.analytic.cells import occupancy_at_cells
 from gmm_core.occupancy import map_estimate
 
 BLOCK = 64  # cells per axis of one evaluation grid
 SNAP = 1e-6  # points within SNAP * R of a common lattice share it
-MAX_GRIDS = 1000  # evaluation grids per request: about 5 ms each on the Intel map
+MAX_GRIDS = 1000  # Monte-Carlo grids per request: about 5 ms each on the Intel map
+MAX_ANALYTIC_POINTS = 1000  # points per request evaluated analytically: 6-15 ms each on the bench maps
+METHODS = ("auto", "analytic", "mc")
+# One point analytically costs about this many one-cell Monte-Carlo grids: bench/points.py, 100
+# scattered points, the mean of two runs (2D Intel 0.77, 0.66; 3D mine sim 0.57, 0.56)
+ANALYTIC_POINT_IN_GRIDS = {2: 0.7, 3: 0.57}
 
 
 def plan(xy: np.ndarray, resolution: float) -> list[tuple[Grid, np.ndarray, np.ndarray]]:
@@ -47,12 +58,37 @@ def plan(xy: np.ndarray, resolution: float) -> list[tuple[Grid, np.ndarray, np.n
     return out
 
 
+def choose_method(n_points: int, n_grids: int, dim: int) -> str:
+    """auto's choice: analytic when it costs less than the Monte-Carlo grids the points need."""
+    return "analytic" if n_points * ANALYTIC_POINT_IN_GRIDS[dim] < n_grids else "mc"
+
+
 def point_probabilities(
-    fleet_map, xy: np.ndarray, resolution: float, robots: Sequence[str] | None = None, grids: list | None = None
+    fleet_map,
+    xy: np.ndarray,
+    resolution: float,
+    robots: Sequence[str] | None = None,
+    grids: list | None = None,
+    method: str = "mc",
 ) -> np.ndarray:
     """float32 (n,) p(occupied) of the cell of size `resolution` centred on each point of `xy` (n, d);
-    `grids` is plan(xy, resolution) when already made."""
+    `grids` is plan(xy, resolution) when already made; `method` one of METHODS."""
+    if method not in METHODS:
+        raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {method!r}")
+    if method != "mc":
+        grids = grids if grids is not None else plan(xy, resolution)
+        if method == "analytic" or choose_method(len(xy), len(grids), xy.shape[1]) == "analytic":
+            return analytic_probabilities(fleet_map, xy, resolution, robots)
     out = np.empty(len(xy), dtype=np.float32)
     for grid, members, cells in grids if grids is not None else plan(xy, resolution):
         out[members] = map_estimate(*fleet_map.counts(grid, robots), fleet_map.prior)[cells]
     return out
+
+
+def analytic_probabilities(fleet_map, xy: np.ndarray, resolution: float, robots: Sequence[str] | None) -> np.ndarray:
+    """p(occupied) of each point's cell from the analytic evidence of the nodes that reach the
+    points' box (gmm_core.analytic.cells: components whose cone misses a cell are skipped there).
+    On the calling thread alone: the API's request threads may evaluate at the same time."""
+    box = Grid.from_bbox(xy.min(axis=0) - resolution / 2, xy.max(axis=0) + resolution / 2, resolution)
+    models = fleet_map.posed_models(box, robots)
+    return occupancy_at_cells(models, xy, resolution, fleet_map.prior, parallel=False).astype(np.float32)

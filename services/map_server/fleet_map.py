@@ -16,7 +16,7 @@ from collections.abc import Collection, Sequence
 
 import numpy as np
 
-from gmm_core import Grid, Pose
+from gmm_core import Grid, Pose, ScanModel
 from gmm_core.occupancy import DEFAULT_PRIOR
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
@@ -98,6 +98,13 @@ class FleetMap:
         hits, misses = self._tracers.trace(grid, list(reaching.values()), [])
         return hits.astype(np.float32), misses.astype(np.float32)
 
+    def posed_models(self, grid: Grid, robots: Sequence[str] | None = None) -> list[tuple[ScanModel, Pose]]:
+        """(scan model, world pose) of every node that can reach `grid` (all robots or `robots`):
+        what the analytic evidence (gmm_core.analytic) is computed from."""
+        with self._lock:  # a snapshot of the reaching nodes and their world poses
+            reaching = self._nodes.reaching(grid, robots)
+        return [(posed.node.model, posed.pose) for posed in reaching.values()]
+
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed
         (tiles.TileCache.occupancy)."""
@@ -111,7 +118,11 @@ class FleetMap:
 
     def cache_stats(self) -> dict:
         with self._lock:
-            return {**self._tiles.stats(), "sample_rays": self._samples.rays_held, "change_log": len(self._nodes.log)}
+            return {
+                **self._tiles.stats(),
+                "sample_components": self._samples.components_held,
+                "change_log": len(self._nodes.log),
+            }
 
     def robots(self) -> list[dict]:
         with self._lock:

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
-from gmm_core.sampling import scan_seed
+from gmm_core.sampling import sample_bounds, scan_seed
 from protocol import PoseGraphUpdate, ScanMessage, decode
 
 from .pose_graph import PoseGraph
@@ -45,10 +45,11 @@ class Stamp(NamedTuple):
 
 
 def local_reach(model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
-    """Node-frame box every ray of the scan stays in: sensor origin plus 3-sigma of all components."""
+    """Node-frame box every ray of the scan stays in: sensor origin plus every sample's box
+    (gmm_core.sampling.sample_bounds), so a node whose box misses a tile adds nothing to it."""
     lo, hi = model.origin.copy(), model.origin.copy()
     for mixture in (model.occupied, model.free):
-        m_lo, m_hi = mixture.bounds(3.0)
+        m_lo, m_hi = sample_bounds(mixture)
         lo, hi = np.minimum(lo, m_lo), np.maximum(hi, m_hi)
     return lo, hi
 

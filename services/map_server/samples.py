@@ -1,64 +1,56 @@
-"""Node-frame samples of the scan models, drawn once per (node, resolution) and kept across queries.
+"""What to sample of each node at each resolution, kept across queries.
 
-Samples stay in the node frame: a pose-graph update moves them at trace time (Eq. 2) and never
-redraws them. They are deterministic by the node's seed, so an evicted entry drawn again has the
-same bytes.
+A node's samples are traced as they are drawn (gmm_core.scan_trace) and never held: what is kept
+is the node's model ready to sample (means, Cholesky factors, counts and weights per component,
+gmm_core.sampling.ScanSamples), a few tens of bytes per component, so a query does not decode
+the node's message again. In the node frame: a pose-graph update moves the samples at trace time
+(Eq. 2) and never redraws them. Deterministic by the node's seed, so an evicted entry made again
+draws the same samples.
 """
 
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from typing import NamedTuple
-
-import numpy as np
 
 from gmm_core import ScanModel
-from gmm_core.sampling import scan_rays
+from gmm_core.sampling import ScanSamples, scan_samples
 
 from .nodes import Node, NodeKey
 
-SAMPLE_CACHE_RAYS = 8_000_000  # node-frame samples kept across queries (about 300 MB)
-# Decoded scan models kept for drawing a node's samples at the next resolution: a new node is asked
+SAMPLE_CACHE_COMPONENTS = 500_000  # components kept ready to sample (about 60 MB in 3D)
+# Decoded scan models kept for preparing a node's samples at the next resolution: a new node is asked
 # for at every resolution the viewer's tiles use, within moments (a node holds only its wire bytes).
 MODEL_CACHE_NODES = 512
 
 
-class NodeRays(NamedTuple):
-    """The rays of one scan model at one resolution (gmm_core.sampling.scan_rays)."""
-
-    ends: np.ndarray  # (n, d) float64 ray end points in the node frame, metres
-    weights: np.ndarray  # (n,) float64 quantised weights: sums of them are exact in float64
-    is_hit: np.ndarray  # (n,) bool: ends in a hit (occupied mixture), else only adds misses (free mixture)
-
-
 class SampleCache:
-    """Thread-safe LRU of NodeRays, bounded by SAMPLE_CACHE_RAYS rays in all."""
+    """Thread-safe LRU of ScanSamples, bounded by SAMPLE_CACHE_COMPONENTS components in all."""
 
     def __init__(self, samples_per_cell: float):
         self.samples_per_cell = samples_per_cell
-        self.rays_held = 0
+        self.components_held = 0
         self._lock = threading.Lock()
-        self._rays: OrderedDict[tuple[NodeKey, float], NodeRays] = OrderedDict()
+        self._samples: OrderedDict[tuple[NodeKey, float], ScanSamples] = OrderedDict()
         self._models: OrderedDict[NodeKey, ScanModel] = OrderedDict()
 
-    def rays(self, node: Node, resolution: float) -> NodeRays:
+    def samples(self, node: Node, resolution: float) -> ScanSamples:
         key = (node.key, resolution)
         with self._lock:
-            rays = self._rays.get(key)
-            if rays is not None:
-                self._rays.move_to_end(key)
-                return rays
-        # Drawn outside the lock; a thread that draws the same key meanwhile draws the same rays.
-        rays = NodeRays(*scan_rays(self._model(node), resolution, node.seed, self.samples_per_cell))
+            samples = self._samples.get(key)
+            if samples is not None:
+                self._samples.move_to_end(key)
+                return samples
+        # Made outside the lock; a thread that makes the same key meanwhile makes the same samples.
+        samples = scan_samples(self._model(node), resolution, node.seed, self.samples_per_cell)
         with self._lock:
-            if key not in self._rays:
-                self._rays[key] = rays
-                self.rays_held += len(rays.ends)
-            while self.rays_held > SAMPLE_CACHE_RAYS and len(self._rays) > 1:
-                _, old = self._rays.popitem(last=False)
-                self.rays_held -= len(old.ends)
-        return rays
+            if key not in self._samples:
+                self._samples[key] = samples
+                self.components_held += _components(samples)
+            while self.components_held > SAMPLE_CACHE_COMPONENTS and len(self._samples) > 1:
+                _, old = self._samples.popitem(last=False)
+                self.components_held -= _components(old)
+        return samples
 
     def _model(self, node: Node) -> ScanModel:
         """The node's scan model, decoded once for all the resolutions asked within moments."""
@@ -73,3 +65,7 @@ class SampleCache:
             if len(self._models) > MODEL_CACHE_NODES:
                 self._models.popitem(last=False)
         return model
+
+
+def _components(samples: ScanSamples) -> int:
+    return len(samples.occupied.counts) + len(samples.free.counts)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmm_core import Grid
-from gmm_core.reconstruct import trace_groups
+from gmm_core.scan_trace import GridCounts
 
 from .nodes import Posed
 from .samples import SampleCache
@@ -150,19 +150,11 @@ class TracerPool:
                 self._part_seconds = seconds if mean is None else mean + PART_SECONDS_WEIGHT * (seconds - mean)
 
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
-        def groups():
-            for sign, posed in entries:
-                self._ingest_idle.wait()
-                if self._closed:
-                    raise TracingStopped("the map server is stopping")
-                rays = self.samples.rays(posed.node, grid.resolution)
-                if len(rays.ends):
-                    # Eq. 2: the node-frame origin and ends moved by the node's world pose.
-                    yield (
-                        posed.pose.apply(posed.node.origin[None])[0],
-                        posed.pose.apply(rays.ends),
-                        sign * rays.weights,
-                        rays.is_hit,
-                    )
-
-        return trace_groups(grid, groups(), None, dtype=np.float64, threads=1)
+        counts = GridCounts(grid)
+        for sign, posed in entries:
+            self._ingest_idle.wait()
+            if self._closed:
+                raise TracingStopped("the map server is stopping")
+            # Eq. 2: the node-frame samples moved by the node's world pose as they are traced.
+            counts.add(self.samples.samples(posed.node, grid.resolution), posed.pose, sign)
+        return counts.arrays()

@@ -71,10 +71,12 @@ def replay_beams(record: RunRecord, stored_at: list[dict[str, int]], progress) -
             if found is not None:
                 window, sub = found
                 h, m = count_beams(sub, [(scan.hits, scan.no_return, scan.pose)], max_range, threads=1)
-                before = grid_state(hits[window], misses[window])
-                hits[window] += h
-                misses[window] += m
-                changed = grid_state(hits[window], misses[window]) != before
+                touched = (h + m) > 0  # the only cells whose state the scan may change
+                window_hits, window_misses = hits[window], misses[window]
+                before = grid_state(window_hits[touched], window_misses[touched])
+                window_hits += h
+                window_misses += m
+                changed = grid_state(window_hits[touched], window_misses[touched]) != before
                 sizes["grid"][k] = GRID_DELTA_CELL_BYTES * np.count_nonzero(changed)
             if with_octomap:
                 sampled = k % stride == 0

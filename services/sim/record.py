@@ -3,6 +3,7 @@ snapshots, and the graded box. services.sim.run fills a RunRecord; services.sim.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,13 +68,24 @@ def evaluation_grid(fleet: SimulatedFleet) -> Grid:
     return Grid.from_bbox(lo, hi, RESOLUTION)
 
 
-def slabs(grid: Grid, max_cells: int = MAX_CELLS) -> list[Grid]:
-    """The grid cut along its first array axis (y in 2D, z in 3D) into pieces of at most `max_cells`."""
-    per_slab = max(1, max_cells // (grid.n_cells // grid.array_shape[0]))
-    pieces = []
-    for first in range(0, grid.array_shape[0], per_slab):
-        origin, shape = grid.origin.copy(), list(grid.shape)
-        origin[-1] += first * grid.resolution
-        shape[-1] = min(per_slab, grid.array_shape[0] - first)
-        pieces.append(Grid(origin, grid.resolution, tuple(shape)))
-    return pieces
+def blocks(grid: Grid, max_cells: int = MAX_CELLS) -> list[tuple[Grid, tuple[slice, ...]]]:
+    """The grid cut into boxes of at most `max_cells`, each with its place in the grid's array.
+
+    Near-cubic boxes: the longest side is cut first. A query traces only the components whose
+    rays reach its box (gmm_core.scan_trace), so boxes cost about what the rays crossing them
+    cost, where thin slabs of a 3D grid would each be crossed by nearly every ray.
+    """
+    shape = np.array(grid.shape)
+    pieces = np.ones(grid.dim, dtype=np.int64)
+    size = shape.copy()
+    while np.prod(size) > max_cells and size.max() > 1:
+        axis = int(np.argmax(size))
+        pieces[axis] += 1
+        size[axis] = -(-shape[axis] // pieces[axis])
+    out = []
+    for first in itertools.product(*(range(0, n, s) for n, s in zip(shape, size))):
+        first = np.array(first)
+        last = np.minimum(first + size, shape)
+        box = Grid(grid.origin + first * grid.resolution, grid.resolution, tuple(int(v) for v in last - first))
+        out.append((box, tuple(slice(int(a), int(b)) for a, b in zip(first[::-1], last[::-1]))))  # arrays: [iz, iy, ix]
+    return out

@@ -15,6 +15,7 @@ import pytest
 from PIL import Image
 
 from gmm_core import Grid, fit_scan
+from gmm_core.analytic.cells import occupancy_at_cells
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, ScanMessage, decode
 from services.api import create_app
@@ -166,12 +167,21 @@ def test_points(server, fleet_map):
     assert np.allclose(reply["probabilities"], expected[::7], atol=1e-6)
     status, body = post(f"{server.url}/v1/occupancy/points", {"points": centres.tolist(), "resolution": 0.1})
     assert status == 200 and np.allclose(json.loads(body)["probabilities"], expected, atol=1e-6)
-    # Scattered points: each its own cell, evaluated like a one-cell grid.
+    assert json.loads(body)["method"] == "mc"  # auto: a lattice of cell centres is one grid
+    # Scattered points: each its own cell, evaluated like a one-cell grid (mc) or analytically.
     points = np.array([[0.013, -1.27], [-3.21, -5.55], [100.0, 100.0]])
-    status, body = post(f"{server.url}/v1/occupancy/points", {"points": points.tolist(), "resolution": 0.2})
+    asked = {"points": points.tolist(), "resolution": 0.2}
+    status, body = post(f"{server.url}/v1/occupancy/points", {**asked, "method": "mc"})
     one_cell = [fleet_map.occupancy(Grid(p - 0.1, 0.2, (1, 1)))[0, 0] for p in points]
     assert status == 200 and np.allclose(json.loads(body)["probabilities"], one_cell, atol=1e-6)
     assert json.loads(body)["probabilities"][2] == 0.5
+    box = Grid.from_bbox(points.min(0) - 0.1, points.max(0) + 0.1, 0.2)  # the points' cells
+    analytic = occupancy_at_cells(fleet_map.posed_models(box), points, 0.2)
+    xy = ",".join(map(repr, points.ravel().tolist()))
+    by_get = get(f"{server.url}/v1/occupancy/points?xy={xy}&resolution=0.2&method=analytic")[2]
+    for reply in (post(f"{server.url}/v1/occupancy/points", asked)[1], by_get):
+        assert json.loads(reply)["method"] == "analytic"  # asked, or auto's choice for three scattered points
+        assert np.allclose(json.loads(reply)["probabilities"], analytic, atol=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -181,6 +191,7 @@ def test_points(server, fleet_map):
         ("xy=1,2,3&resolution=0.1", "xy"),
         ("xy=1,nan&resolution=0.1", "xy"),
         ("xy=1e300,0&resolution=0.1", "xy"),
+        ("xy=1,2&resolution=0.1&method=exact", "method"),
         ("xyz=1,2,3&resolution=0.1", "xyz"),
         ("resolution=0.1", "xy"),
         ("xy=1,2&resolution=0", "resolution"),
@@ -199,6 +210,7 @@ def test_bad_points(server, query, field):
         ({"points": [[0, 0, 0]], "resolution": 0.1}, "points"),
         ({"points": [], "resolution": 0.1}, "points"),
         ({"points": [[0, 0]], "resolution": 0.1, "robots": ["a,b"]}, "robots"),
+        ({"points": [[0, 0]], "resolution": 0.1, "method": "MC"}, "method"),
         ("not an object", None),
     ],
 )

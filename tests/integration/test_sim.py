@@ -20,7 +20,7 @@ from services.agent.sources import default_update_every, load_nodes
 from services.sim.byte_models import GRID_DELTA_CELL_BYTES, grid_state, scan_window
 from services.sim.fleet import SimSource, SimulatedFleet
 from services.sim.processes import free_port
-from services.sim.record import slabs
+from services.sim.record import blocks
 from services.sim.relay import CountingRelay
 from support.paths import ROOT
 
@@ -123,11 +123,20 @@ def test_grid_deltas_in_windows_equal_the_whole_grid():
     assert scan_window(Grid((100.0, 100.0), 0.1, (5, 5)), scans[0], 1.0) is None
 
 
-def test_slabs_cover_the_grid_exactly():
-    grid = Grid((0.0, 1.0, 2.0), 0.1, (30, 20, 17))
-    pieces = slabs(grid, max_cells=30 * 20 * 4)
-    assert [p.shape for p in pieces] == [(30, 20, 4)] * 4 + [(30, 20, 1)]
-    assert np.allclose(pieces[-1].upper, grid.upper) and np.allclose(pieces[1].origin, [0, 1, 2.4])
+@pytest.mark.parametrize("shape", [(30, 20, 17), (800, 590, 80), (41, 7)])
+def test_blocks_cover_the_grid_exactly_once(shape):
+    grid = Grid((0.0, 1.0, 2.0)[: len(shape)], 0.1, shape)
+    limit = 500_000 if grid.n_cells > 10**6 else 30 * 20 * 4
+    pieces = blocks(grid, max_cells=limit)
+    covered = np.zeros(grid.array_shape, dtype=int)
+    for box, place in pieces:
+        assert box.n_cells <= limit and covered[place].shape == box.array_shape
+        corner = tuple(s.start for s in place)[::-1]  # (ix, iy[, iz]) of the box's first cell
+        assert np.allclose(box.origin, grid.origin + np.array(corner) * grid.resolution)
+        covered[place] += 1
+    assert np.all(covered == 1)
+    if shape == (800, 590, 80):  # the mine's graded box: boxes span its height, not slabs of it
+        assert all(box.shape[2] == 80 for box, _ in pieces) and len(pieces) < 100
 
 
 # --- processes -----------------------------------------------------------------------------------
