@@ -33,6 +33,7 @@ from gmm_core.mixture import Mixture
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
+_FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
 # Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
 _AXIS_ITERATIONS = 8
 # Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
@@ -62,12 +63,9 @@ def _voxel_key(points, i, size):
 
 
 @njit(cache=True)
-def _hash_table(n):
-    """An open-addressing table for up to n keys: rows (key, -1 where empty; the key's voxel
+def _hash_table(bits):
+    """An open-addressing table of 2^bits slots: rows (key, -1 where empty; the key's voxel
     number), side by side so that a probe reads one cache line; and the shift of the hash."""
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
     return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
 
 
@@ -85,13 +83,29 @@ def _voxel_number(table, shift, key, n_voxels):
 
 
 @njit(cache=True)
+def _grown(table, n_voxels):
+    """`table` with room for twice `n_voxels` at half load: the table stays as small as the
+    voxels (a few hundred KB for a lidar scan's), not as the points, and so in cache."""
+    bits = 4
+    while (1 << bits) < 4 * n_voxels:
+        bits += 1
+    grown, shift = _hash_table(bits)
+    for h in range(table.shape[0]):
+        if table[h, 0] != -1:
+            _voxel_number(grown, shift, table[h, 0], table[h, 1])
+    return grown, shift
+
+
+@njit(cache=True)
 def count_voxels(points, size):
     """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them, in one pass)."""
-    table, shift = _hash_table(points.shape[0])
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
     count = 0
     for i in range(points.shape[0]):
         if _voxel_number(table, shift, _voxel_key(points, i, size), count) == count:
             count += 1
+            if 2 * count > table.shape[0]:
+                table, shift = _grown(table, count)
     return count
 
 
@@ -100,13 +114,16 @@ def _voxel_statistics(points, voxel_size):
     """Per occupied voxel floor(x / voxel_size), the sums of em._features over its points (M, f),
     voxels in the order of their first point: one pass, one hash probe per point."""
     n, d = points.shape
-    table, shift = _hash_table(n)
-    n_features = 1 + d + d * (d + 1) // 2
-    sums = np.zeros((n, n_features))
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
+    sums = np.empty((n, 1 + d + d * (d + 1) // 2))
     n_voxels = 0
     for i in range(n):
         v = _voxel_number(table, shift, _voxel_key(points, i, voxel_size), n_voxels)
-        n_voxels = max(n_voxels, v + 1)
+        if v == n_voxels:
+            sums[v] = 0.0
+            n_voxels += 1
+            if 2 * n_voxels > table.shape[0]:
+                table, shift = _grown(table, n_voxels)
         sums[v, 0] += 1.0
         j = 1 + d
         for a in range(d):

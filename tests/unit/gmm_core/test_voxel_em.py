@@ -44,6 +44,10 @@ def test_voxel_statistics_match_numpy(dim):
     assert np.allclose(sums, expected, rtol=1e-12, atol=1e-9)
     assert count_voxels(points, 0.7) == len(cells)
     assert count_voxels(points[:0], 0.7) == 0
+    # Thousands of voxels: the hash table grows from 1024 slots several times on the way.
+    spread = rng.uniform(-50, 50, (6000, dim))
+    assert count_voxels(spread, 0.05) == len(np.unique(np.floor(spread / 0.05), axis=0))
+    assert np.allclose(_voxel_statistics(spread, 0.05).sum(axis=0), em._features(spread).sum(axis=0))
 
 
 def test_split_groups_partition_the_voxels():
