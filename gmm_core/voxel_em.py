@@ -34,13 +34,16 @@ _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
 _FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
+_N_FEATURES = 10  # [1, x, upper triangle of x x^T] of a 3D point (em._features)
 # Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
 _AXIS_ITERATIONS = 8
 # Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
 # found by a search of the components whose box of this many sigmas reaches the voxel's hash cell
-# on these passes (1-based). On three BALM scans, 8 passes: searching on passes 1 and 3 gives a
-# mean log-likelihood per point 0.025 below the untruncated EM's (-2.509 vs -2.484), searching on
-# pass 1 only 0.06 below; keeping 8 instead of 4 buys 0.02 for twice the scores.
+# on these passes (1-based; the first pass always searches). Mean log-likelihood per point on
+# three BALM scans after 8 passes: untruncated EM on the voxels (before issue 15's second part)
+# -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1 and 3: -2.514; on 1 only: -2.552,
+# and -2.520 when keeping 8 components instead of 4. A search pass costs about the scores of
+# two passes over the kept components.
 _KEPT_COMPONENTS = 4
 _SEARCH_BOX_SIGMAS = 3.0
 _SEARCH_PASSES = (1, 3)
@@ -300,82 +303,66 @@ def _score(packed, k, means, scatter, i):
     return packed[k, 15] - 0.5 * (y0 * y0 + y1 * y1 + y2 * y2 + trace)
 
 
-@njit(cache=True, inline="always")
-def _shared_responsibilities(log_p, comps, count, sums, i, stats):
-    """Voxel i's responsibilities from the scores log_p[:count] of components comps[:count] (in
-    place); each times the voxel's sums is added to its row of `stats`. Returns
-    n_i logsumexp(log_p), the voxel's term of the bound."""
-    best = -np.inf
-    for j in range(count):
-        best = max(best, log_p[j])
-    norm = 0.0
-    for j in range(count):
-        log_p[j] = np.exp(log_p[j] - best) if log_p[j] - best > em._LOG_RESP_FLOOR else 0.0
-        norm += log_p[j]
-    for j in range(count):
-        if log_p[j] == 0.0:
-            continue
-        r = log_p[j] / norm
-        k = comps[j]
-        for q in range(sums.shape[1]):
-            stats[k, q] += r * sums[i, q]
-    return sums[i, 0] * (best + np.log(norm))
-
-
 @njit(cache=True)
-def _search_block(means, sums, scatter, voxel_cell, lo_i, hi_i, start, items, packed, kept, n_kept, stats):
-    """E-step of voxels lo_i..hi_i against every component whose box reaches their hash cell
-    (all of them where none does), fused with the M-step sums (into `stats`). Each voxel's
-    responsibilities are spread over its kept.shape[1] most likely components only, which are
-    kept in kept[i, :n_kept[i]] for the passes that follow (_kept_block). Returns the bound.
+def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, items, packed, kept, n_kept, stats):
+    """E-step of voxels lo_i..hi_i fused with the M-step sums (into `stats`); returns the bound
+    sum_i n_i logsumexp_k(score_ik) over each voxel's kept components k.
+
+    Each voxel's responsibilities are spread over its kept.shape[1] most likely components
+    only. With `search`, those are found among the components listed for the voxel's hash cell
+    (`voxel_cell`, CSR `start`/`items`; all components where none is listed) and written to
+    kept[i, :n_kept[i]]; without, the kept ones are scored again. One loop for both: numba
+    compiles the shared responsibility code best inline.
     """
     k_count = packed.shape[0]
     n_top = kept.shape[1]
     everyone = np.arange(k_count)
-    top = np.empty(n_top)
-    top_k = np.empty(n_top, dtype=np.int64)
+    log_p = np.empty(n_top)
     stats[:] = 0.0
     bound = 0.0
     c = -1
     comps = everyone
     for i in range(lo_i, hi_i):
-        if voxel_cell[i] != c:
-            c = voxel_cell[i]
-            comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
-        count = 0
-        for j in range(comps.shape[0]):
-            s = _score(packed, comps[j], means, scatter, i)
-            if count == n_top and s <= top[n_top - 1]:
-                continue
-            at = min(count, n_top - 1)  # insertion into the sorted top list
-            while at > 0 and top[at - 1] < s:
-                top[at] = top[at - 1]
-                top_k[at] = top_k[at - 1]
-                at -= 1
-            top[at] = s
-            top_k[at] = comps[j]
-            count = min(count + 1, n_top)
-        while count > 1 and top[count - 1] < top[0] + em._LOG_RESP_FLOOR:
-            count -= 1  # a responsibility below e^-20 of the largest would add nothing in later passes
+        if search:
+            if voxel_cell[i] != c:
+                c = voxel_cell[i]
+                comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
+            count = 0
+            for j in range(comps.shape[0]):
+                s = _score(packed, comps[j], means, scatter, i)
+                if count == n_top and s <= log_p[n_top - 1]:
+                    continue
+                at = min(count, n_top - 1)  # insertion into the sorted top list
+                while at > 0 and log_p[at - 1] < s:
+                    log_p[at] = log_p[at - 1]
+                    kept[i, at] = kept[i, at - 1]
+                    at -= 1
+                log_p[at] = s
+                kept[i, at] = comps[j]
+                count = min(count + 1, n_top)
+            while count > 1 and log_p[count - 1] < log_p[0] + em._LOG_RESP_FLOOR:
+                count -= 1  # a responsibility below e^-20 of the largest would add nothing in later passes
+            n_kept[i] = count
+        else:
+            count = n_kept[i]
+            for j in range(count):
+                log_p[j] = _score(packed, kept[i, j], means, scatter, i)
+        best = -np.inf
         for j in range(count):
-            kept[i, j] = top_k[j]
-        n_kept[i] = count
-        bound += _shared_responsibilities(top, top_k, count, sums, i, stats)
-    return bound
-
-
-@njit(cache=True)
-def _kept_block(means, sums, scatter, lo_i, hi_i, packed, kept, n_kept, stats):
-    """The E-step of _search_block for voxels lo_i..hi_i over the components kept for each."""
-    log_p = np.empty(kept.shape[1])
-    comps = np.empty(kept.shape[1], dtype=np.int64)
-    stats[:] = 0.0
-    bound = 0.0
-    for i in range(lo_i, hi_i):
-        for j in range(n_kept[i]):
-            comps[j] = kept[i, j]
-            log_p[j] = _score(packed, comps[j], means, scatter, i)
-        bound += _shared_responsibilities(log_p, comps, n_kept[i], sums, i, stats)
+            best = max(best, log_p[j])
+        norm = 0.0
+        for j in range(count):
+            log_p[j] = np.exp(log_p[j] - best) if log_p[j] - best > em._LOG_RESP_FLOOR else 0.0
+            norm += log_p[j]
+        inverse = 1.0 / norm
+        for j in range(count):
+            if log_p[j] == 0.0:
+                continue
+            r = log_p[j] * inverse
+            k = kept[i, j]
+            for q in range(_N_FEATURES):
+                stats[k, q] += r * sums[i, q]
+        bound += sums[i, 0] * (best + np.log(norm))
     return bound
 
 
@@ -400,29 +387,43 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     means, sums, scatter = means[order], sums[order], scatter[order]
     total_weight = sums[:, 0].sum()
     block_stats = np.zeros((n_blocks, k_count, sums.shape[1]))
+    total = np.empty((k_count, sums.shape[1]))
     packed = np.empty((k_count, 16))
     kept = np.empty((m, n_kept), dtype=np.int64)
     n_kept_of = np.zeros(m, dtype=np.int64)
+    start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
     previous = -np.inf
     passes = 0
     while passes < max_iter:
         passes += 1
-        search = passes in _SEARCH_PASSES
-        if search:  # boxes of the parameters at the start of the pass: candidates need not be exact
+        search = passes == 1 or passes in _SEARCH_PASSES
+        if search and passes > 1:  # boxes of the parameters at the start of the pass: candidates need not be exact
             start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
         bound = 0.0
         for b in range(n_blocks):
             lo_i, hi_i = (b * m) // n_blocks, ((b + 1) * m) // n_blocks
             if passes > 1 or b == 0:
                 _pack_components(weights, mu, covs, packed)
-            if search:
-                bound += _search_block(
-                    means, sums, scatter, voxel_cell, lo_i, hi_i, start, items, packed, kept, n_kept_of, block_stats[b]
-                )
-            else:
-                bound += _kept_block(means, sums, scatter, lo_i, hi_i, packed, kept, n_kept_of, block_stats[b])
+            bound += _e_step_block(
+                means,
+                sums,
+                scatter,
+                lo_i,
+                hi_i,
+                search,
+                voxel_cell,
+                start,
+                items,
+                packed,
+                kept,
+                n_kept_of,
+                block_stats[b],
+            )
             if passes > 1 or b == n_blocks - 1:
-                em._m_step(block_stats.sum(axis=0), reg_covar, weights, mu, covs)
+                total[:] = 0.0  # the blocks' sums, without numpy's temporary
+                for c in range(n_blocks):
+                    total += block_stats[c]
+                em._m_step(total, reg_covar, weights, mu, covs)
         bound /= total_weight
         if abs(bound - previous) < tol:
             break

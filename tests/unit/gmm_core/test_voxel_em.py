@@ -10,10 +10,9 @@ from sklearn.mixture import GaussianMixture
 
 from gmm_core import FitConfig, em, fit_scan
 from gmm_core.voxel_em import (
-    _kept_block,
+    _e_step_block,
     _means_and_scatter,
     _pack_components,
-    _search_block,
     _split_groups,
     _voxel_statistics,
     count_voxels,
@@ -106,8 +105,15 @@ def voxelised(points, size):
 
 
 def kept_e_step(sums, means, scatter, rows, kept, n_kept):
+    """The E-step that scores each voxel's kept components again (no search)."""
     stats = np.empty((len(rows), sums.shape[1]))
-    return _kept_block(means, sums, scatter, 0, len(sums), rows, kept, n_kept, stats), stats
+    no_cells, no_start, no_items = (
+        np.zeros(len(sums), dtype=np.int64),
+        np.zeros(2, dtype=np.int64),
+        np.zeros(0, dtype=np.int64),
+    )
+    args = (False, no_cells, no_start, no_items, rows, kept, n_kept, stats)
+    return _e_step_block(means, sums, scatter, 0, len(sums), *args), stats
 
 
 def test_kept_e_step_of_identical_points_is_the_e_step_of_the_points():
@@ -163,7 +169,8 @@ def test_search_keeps_each_voxels_most_likely_components():
     kept, n_kept = np.empty((len(sums), 4), dtype=np.int64), np.empty(len(sums), dtype=np.int64)
     stats = np.empty((12, sums.shape[1]))
     cells, start, items = np.zeros(len(sums), dtype=np.int64), np.array([0, 12]), np.arange(12)
-    bound = _search_block(voxel_means, sums, scatter, cells, 0, len(sums), start, items, rows, kept, n_kept, stats)
+    args = (True, cells, start, items, rows, kept, n_kept, stats)
+    bound = _e_step_block(voxel_means, sums, scatter, 0, len(sums), *args)
     scores = reference_scores(points, voxel, weights, means, covs)
     top = np.argsort(-scores, axis=1)[:, :4]
     top_scores = np.take_along_axis(scores, top, axis=1)
@@ -189,8 +196,8 @@ def test_fit_recovers_well_separated_clusters():
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 15 open: 0.25 m voxels share one responsibility, so the fit is 0.12-0.25 nats/point below "
-    "scikit-learn (Kurt3D -0.125 vs +0.111 here; docs/BENCHMARKS.md), more than 5 %",
+    reason="issue 15 open: 8 EM passes on 0.25 m voxels sharing one responsibility end 0.19-0.24 nats/point "
+    "below scikit-learn's converged EM (Kurt3D -0.130 vs +0.111 here; docs/BENCHMARKS.md), more than 5 %",
 )
 @pytest.mark.parametrize(
     "scan", [("kurt3d", {}), ("octomap/scan.dat.bz2", {"origin": (0, 0, 0.49)})], ids=["kurt3d", "octomap"]
