@@ -42,8 +42,8 @@ _AXIS_ITERATIONS = 8
 # on these passes (1-based; the first pass always searches). Mean log-likelihood per point on
 # three BALM scans after 8 passes: untruncated EM on the voxels (before issue 15's second part)
 # -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1 and 3: -2.514; on 1 only: -2.552,
-# and -2.520 when keeping 8 components instead of 4. A search pass costs about the scores of
-# two passes over the kept components.
+# and -2.520 when keeping 8 components instead of 4. A search pass costs about three passes over
+# the kept components (docs/BENCHMARKS.md, issue 15 part 2).
 _KEPT_COMPONENTS = 4
 _SEARCH_BOX_SIGMAS = 3.0
 _SEARCH_PASSES = (1, 3)
@@ -373,9 +373,10 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
 
     Passes _SEARCH_PASSES search each voxel's candidates (the components whose
     _SEARCH_BOX_SIGMAS box reaches its hash cell) and keep its `n_kept` most likely; the other
-    passes score only those. Each E-step is exact for responsibilities restricted to the kept
-    components, so, as a full E-step, it does not lower a bound on the log-likelihood (truncated
-    EM, Luecke & Eggert 2010), and a pass costs a few scores per voxel instead of about ten.
+    passes score only those. Such a pass is an exact E-step for responsibilities restricted to
+    the kept components, so, as a full E-step, it does not lower a bound on the log-likelihood
+    (truncated EM, Luecke & Eggert 2010; a search may drop a kept component whose box no longer
+    reaches the voxel), and it costs a few scores per voxel instead of about ten.
     The schedule is em._refine's: voxel i in block i mod B, the M-step after every block from
     the second pass on (Neal & Hinton 1998).
     """
