@@ -35,9 +35,6 @@ _BLOCK_POINTS_PER_COMPONENT = 10
 _TRIAL_PASSES = 8
 _TRIAL_SEED_STEP = 1_000_003
 _BOX_SIGMAS = 5.0
-_GROUPED_BOX_SIGMAS = 4.0
-_GROUPED_CELLS_PER_POINT = 8
-_GROUPED_BLOCK_POINTS_PER_COMPONENT = 2
 
 
 @njit(cache=True)
@@ -293,59 +290,23 @@ def _mahalanobis(points, i, prec, means, k):
 
 
 @njit(cache=True)
-def _prepare(weights, means, covs, prec, log_norm, precision):
-    """Per component, L^{-1} into `prec`, log(pi_k) - log det(2 pi Sigma_k) / 2 into `log_norm`
-    and Sigma_k^{-1} = L^{-T} L^{-1} into `precision` (when it has rows: the grouped E-step's trace term)."""
+def _prepare(weights, means, covs, prec, log_norm):
+    """Per component, L^{-1} into `prec` and log(pi_k) - log det(2 pi Sigma_k) / 2 into `log_norm`."""
     k_count, d = means.shape
     for k in range(k_count):
         log_det = _cholesky_inverse(covs[k], prec[k])
         log_norm[k] = np.log(weights[k]) - 0.5 * (log_det + d * _LOG_2PI)
-        if precision.shape[0] > 0:
-            for a in range(d):
-                for b in range(d):
-                    s = 0.0
-                    for c in range(max(a, b), d):
-                        s += prec[k, c, a] * prec[k, c, b]
-                    precision[k, a, b] = s
-
-
-@njit(cache=True, inline="always")
-def _trace_term(precision, k, scatter, i):
-    """tr(Sigma_k^{-1} S_i) for a group's scatter S_i stored as its upper triangle, unrolled for
-    d = 2 (xx, xy, yy) and 3 (xx, xy, xz, yy, yz, zz)."""
-    if precision.shape[1] == 2:
-        return (
-            precision[k, 0, 0] * scatter[i, 0]
-            + 2.0 * precision[k, 0, 1] * scatter[i, 1]
-            + (precision[k, 1, 1] * scatter[i, 2])
-        )
-    return (
-        precision[k, 0, 0] * scatter[i, 0]
-        + precision[k, 1, 1] * scatter[i, 3]
-        + precision[k, 2, 2] * scatter[i, 5]
-        + 2.0
-        * (precision[k, 0, 1] * scatter[i, 1] + precision[k, 0, 2] * scatter[i, 2] + precision[k, 1, 2] * scatter[i, 4])
-    )
 
 
 @njit(cache=True)
-def _e_step_block(
-    points, features, scatter, point_cell, lo_i, hi_i, start, items, prec, precision, means, log_norm, stats
-):
+def _e_step_block(points, features, point_cell, lo_i, hi_i, start, items, prec, means, log_norm, stats):
     """E-step over points lo_i..hi_i fused with the M-step sums (into `stats`); returns the sum of log p.
 
     Points come sorted by hash cell, so a run of points shares one candidate list. A point is
     scored against the components listed for its cell; one that no component's 5-sigma box
     reaches is scored against all of them.
-
-    Grouped points (EM on sufficient statistics): when `scatter` has rows, point i stands for
-    features[i, 0] points with mean points[i] and scatter S_i, which share one responsibility
-    (Verbeek, Nunnink & Vlassis 2006). Their mean log N(x | mu_k, Sigma_k) is the point's
-    minus tr(Sigma_k^{-1} S_i) / 2, and the sum returned is then the bound
-    sum_i n_i logsumexp_k(log pi_k + mean log N), at most the log-likelihood of the points.
     """
     k_count = log_norm.shape[0]
-    grouped = scatter.shape[0] > 0
     everyone = np.arange(k_count)
     log_p = np.empty(k_count)
     stats[:] = 0.0
@@ -359,8 +320,6 @@ def _e_step_block(
         best = -np.inf
         for j in range(comps.shape[0]):
             q = _mahalanobis(points, i, prec, means, comps[j])
-            if grouped:
-                q += _trace_term(precision, comps[j], scatter, i)
             log_p[j] = log_norm[comps[j]] - 0.5 * q
             best = max(best, log_p[j])
         norm = 0.0
@@ -379,30 +338,14 @@ def _e_step_block(
 
 
 @njit(cache=True)
-def _refine(points, features, scatter, weights, means, covs, reg_covar, max_iter, tol):
-    """Incremental EM in place, at most `max_iter` passes, until the mean log-likelihood of a
-    pass changes by less than `tol`; returns the number of passes and the mean log-likelihood of
-    the last one (per point: grouped points count features[i, 0] times).
-
-    `features` are what the M-step sums for each point (`_features`, or the sums of a group's);
-    `scatter` is empty, or each group's scatter as _e_step_block takes it.
-
-    Point i goes to block i mod B, so each block thins the whole scan evenly. The first pass is
-    plain EM; after it, the M-step runs after every block on that block's fresh sums plus the
-    other blocks' sums from their last visit. Like a plain EM step, each such step does not lower
-    the log-likelihood bound (Neal & Hinton 1998), and a pass moves the components B times.
-    """
+def _block_cell_order(points, n_blocks, lo, cell, dims):
+    """Counting sort of the points by block (point i in block i mod n_blocks), then by hash cell,
+    so that points sharing a candidate list are visited together: (order, hash cell of each
+    point in that order)."""
     n, d = points.shape
-    k_count = weights.shape[0]
-    grouped = scatter.shape[0] > 0
-    per_component = _GROUPED_BLOCK_POINTS_PER_COMPONENT if grouped else _BLOCK_POINTS_PER_COMPONENT
-    n_blocks = max(1, min(_MAX_BLOCKS, n // (per_component * k_count)))
-    lo, cell, dims = _hash_grid(points, k_count, n * (_GROUPED_CELLS_PER_POINT if grouped else 1))
-    box_sigmas = _GROUPED_BOX_SIGMAS if grouped else _BOX_SIGMAS
     n_cells = 1
     for a in range(d):
         n_cells *= dims[a]
-    # Counting sort by block, then by cell: points that share a candidate list are visited together.
     key = np.empty(n, dtype=np.int64)
     first = np.zeros(n_blocks * n_cells + 1, dtype=np.int64)
     for i in range(n):
@@ -414,14 +357,32 @@ def _refine(points, features, scatter, weights, means, covs, reg_covar, max_iter
     for i in range(n):
         order[first[key[i]]] = i
         first[key[i]] += 1
+    return order, key[order] % n_cells
+
+
+@njit(cache=True)
+def _refine(points, features, weights, means, covs, reg_covar, max_iter, tol):
+    """Incremental EM in place, at most `max_iter` passes, until the mean log-likelihood of a
+    pass changes by less than `tol`; returns the number of passes and the mean log-likelihood of
+    the last one.
+
+    `features` are what the M-step sums for each point (`_features`).
+
+    Point i goes to block i mod B, so each block thins the whole scan evenly. The first pass is
+    plain EM; after it, the M-step runs after every block on that block's fresh sums plus the
+    other blocks' sums from their last visit. Like a plain EM step, each such step does not lower
+    the log-likelihood bound (Neal & Hinton 1998), and a pass moves the components B times.
+    """
+    n, d = points.shape
+    k_count = weights.shape[0]
+    n_blocks = max(1, min(_MAX_BLOCKS, n // (_BLOCK_POINTS_PER_COMPONENT * k_count)))
+    lo, cell, dims = _hash_grid(points, k_count, n)
+    order, point_cell = _block_cell_order(points, n_blocks, lo, cell, dims)
     points = points[order]
     features = features[order]
-    scatter = scatter[order] if scatter.shape[0] > 0 else scatter
-    point_cell = key[order] % n_cells
     total_weight = features[:, 0].sum()
     block_stats = np.zeros((n_blocks, k_count, features.shape[1]))
     prec = np.empty((k_count, d, d))
-    precision = np.empty((k_count if scatter.shape[0] > 0 else 0, d, d))
     log_norm = np.empty(k_count)
     previous = -np.inf
     passes = 0
@@ -430,19 +391,17 @@ def _refine(points, features, scatter, weights, means, covs, reg_covar, max_iter
         ll = 0.0
         for b in range(n_blocks):
             if passes > 1 or b == 0:  # the parameters have moved since the last lists
-                _prepare(weights, means, covs, prec, log_norm, precision)
-                start, items = _candidates(weights, means, covs, lo, cell, dims, box_sigmas)
+                _prepare(weights, means, covs, prec, log_norm)
+                start, items = _candidates(weights, means, covs, lo, cell, dims, _BOX_SIGMAS)
             ll += _e_step_block(
                 points,
                 features,
-                scatter,
                 point_cell,
                 (b * n) // n_blocks,
                 ((b + 1) * n) // n_blocks,
                 start,
                 items,
                 prec,
-                precision,
                 means,
                 log_norm,
                 block_stats[b],
@@ -468,23 +427,18 @@ def _em(points, n_components, reg_covar, max_iter, tol, seed, init_points, max_p
     np.random.seed(seed)
     subset = points[np.random.permutation(n)[:init_points]] if n > init_points else points
     features = _features(subset)
-    no_scatter = np.empty((0, d * (d + 1) // 2))
     best = -np.inf
     for trial in range(n_init):
         labels = _kmeans_labels(subset, n_components, seed + _TRIAL_SEED_STEP * trial, _LLOYD_ITER)
         w, m, c = np.empty(n_components), np.empty((n_components, d)), np.empty((n_components, d, d))
         _m_step(_labels_statistics(features, labels, n_components), reg_covar, w, m, c)
-        _, ll = _refine(
-            subset, features, no_scatter, w, m, c, reg_covar, _TRIAL_PASSES if n_init > 1 else max_iter, tol
-        )
+        _, ll = _refine(subset, features, w, m, c, reg_covar, _TRIAL_PASSES if n_init > 1 else max_iter, tol)
         if trial == 0 or ll > best:
             best, weights, means, covs = ll, w, m, c
     if n_init > 1:
-        _refine(subset, features, no_scatter, weights, means, covs, reg_covar, max_iter, tol)
+        _refine(subset, features, weights, means, covs, reg_covar, max_iter, tol)
     if n > init_points:
-        _refine(
-            points, _features(points), no_scatter, weights, means, covs, reg_covar, min(max_iter, max_polish_iter), tol
-        )
+        _refine(points, _features(points), weights, means, covs, reg_covar, min(max_iter, max_polish_iter), tol)
     return weights, means, covs
 
 

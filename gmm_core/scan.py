@@ -57,8 +57,8 @@ class FitConfig:
     one component per patch of surface, not one per three points), and no more than
     `max_components`, which bounds the message size. `for_dimension` resolves the defaults that
     depend on the scan: `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in
-    3D; `voxel_size` None means 0 in 2D and `DENSE_3D_VOXEL_SIZE` in 3D; `voxel_max_iter` None
-    means `DENSE_3D_VOXEL_MAX_ITER`.
+    3D; `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
+    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`.
 
     With `voxel_size` > 0, EM runs on the summed statistics of the points of each voxel of that
     size, from a top-down split (gmm_core.voxel_em), at most `voxel_max_iter` passes: a 3D scan
@@ -72,7 +72,7 @@ class FitConfig:
     reg_covar: float = 1e-4  # m^2, variance floor: about the sensor's 1 cm range noise
     max_iter: int = 100  # EM iterations, >= 1
     tol: float = 1e-3  # EM stops when the mean log-likelihood gains less than this, nats per point
-    voxel_size: float | None = None  # m, >= 0, 0: no voxels; None: 0 in 2D, DENSE_3D_VOXEL_SIZE in 3D
+    voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 1; None: DENSE_3D_VOXEL_MAX_ITER
 
     def __post_init__(self):
@@ -91,7 +91,7 @@ class FitConfig:
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
         component_size = DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size
-        voxel_size = (DENSE_3D_VOXEL_SIZE if dim == 3 else 0.0) if self.voxel_size is None else self.voxel_size
+        voxel_size = (DENSE_3D_VOXEL_SIZE if self.voxel_size is None else self.voxel_size) if dim == 3 else 0.0
         voxel_max_iter = DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter
         resolved = (component_size, voxel_size, voxel_max_iter)
         if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter):

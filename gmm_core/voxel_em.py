@@ -1,17 +1,21 @@
 """A 3D scan's mixture from the sufficient statistics of a fine voxelisation, at sensor rate.
 
-Three steps, each one pass over its data:
+Three steps:
 
-1. One pass over the points sums [1, x, x x^T] per voxel of size `voxel_size` (a hash table;
-   consecutive points of a scan line mostly fall in the voxel of the point before).
+1. One pass over the points sums [1, x, x x^T] per voxel of size `voxel_size` (a hash table,
+   one probe per point: the lidar clouds here come unordered, so runs of points in one voxel
+   are too rare to pay for a check).
 2. Top-down splitting of those voxels (hierarchical, as Eckart et al., CVPR 2016, ref. [10] of
    the paper): the group with the largest scatter (sum of squared distances to its mean, what
    k-means minimises) is cut at its mean across its principal axis until there are K groups;
    their summed statistics give the first parameters (M-step, Sec. III-A).
-3. EM on the voxels as weighted points (Verbeek, Nunnink & Vlassis 2006): a voxel's points
-   share one responsibility, the E-step scores the voxel's mean and adds the trace of its
-   scatter (em._e_step_block), the M-step sums its statistics. Each pass maximises a lower
-   bound on the points' log-likelihood over M voxels instead of N points.
+3. Truncated EM on the voxels as weighted points (Verbeek, Nunnink & Vlassis 2006): a voxel's
+   points share one responsibility, the E-step scores the voxel's mean and adds the trace of
+   its scatter, the M-step sums its statistics; each voxel's responsibility is spread over its
+   few most likely components, found by a search on a few passes and only re-scored on the
+   others (Luecke & Eggert 2010). Each pass does not lower a bound on the points'
+   log-likelihood, at the cost of M voxels times a few components instead of N points times
+   about ten.
 """
 
 from __future__ import annotations
@@ -24,118 +28,111 @@ from numba import njit
 from gmm_core import em
 from gmm_core.mixture import Mixture
 
-# Voxel coordinates are packed into one int64 key, this many bits per axis (2^21 voxels along
-# an axis: 100 km at 5 cm).
+# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^20 voxels from
+# the origin: +-52 km at 5 cm).
 _KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
+_FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
+_N_FEATURES = 10  # [1, x, upper triangle of x x^T] of a 3D point (em._features)
 # Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
 _AXIS_ITERATIONS = 8
-
-
-@njit(cache=True)
-def _key_origin(points, size):
-    """The smallest voxel index floor(x / size) along each axis, so that keys are non-negative."""
-    n, d = points.shape
-    lo = np.zeros(d, dtype=np.int64)
-    hi = np.zeros(d, dtype=np.int64)
-    for a in range(d):
-        lo[a] = hi[a] = int(np.floor(points[0, a] / size))
-    for i in range(n):
-        for a in range(d):
-            c = int(np.floor(points[i, a] / size))
-            lo[a] = min(lo[a], c)
-            hi[a] = max(hi[a], c)
-    for a in range(d):
-        if hi[a] - lo[a] >= 2**_KEY_BITS:
-            raise ValueError("voxels: the points span more voxels than a key holds")
-    return lo
+# Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
+# found by a search of the components whose box of this many sigmas reaches the voxel's hash cell
+# on these passes (1-based; the first pass always searches). Mean log-likelihood per point on
+# three BALM scans after 8 passes: untruncated EM on the voxels (before issue 15's second part)
+# -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1 and 3: -2.514; on 1 only: -2.552,
+# and -2.520 when keeping 8 components instead of 4. A search pass costs about three passes over
+# the kept components (docs/BENCHMARKS.md, issue 15 part 2).
+_KEPT_COMPONENTS = 4
+_SEARCH_BOX_SIGMAS = 3.0
+_SEARCH_PASSES = (1, 3)
+# Hash grid and blocks of the voxel EM: as em._refine's for points, with more cells (voxels are
+# sparse in the box of a scan) and smaller blocks (a voxel stands for several points).
+_CELLS_PER_VOXEL = 8
+_BLOCK_VOXELS_PER_COMPONENT = 2
 
 
 @njit(cache=True, inline="always")
-def _voxel_key(points, i, origin, size):
-    """Voxel floor(x_i / size) - origin packed into one int64."""
+def _voxel_key(points, i, size):
+    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their range."""
     key = 0
     for a in range(points.shape[1]):
-        key = (key << _KEY_BITS) + (int(np.floor(points[i, a] / size)) - origin[a])
+        c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
+        if c < 0 or c >= 2 * _KEY_OFFSET:
+            raise ValueError("voxels: a point lies more than 2^20 voxels from the origin")
+        key = (key << _KEY_BITS) + c
     return key
 
 
 @njit(cache=True)
-def _hash_table(n):
-    """An open-addressing table for up to n keys: (keys, -1 where empty; shift of the hash)."""
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
-    return np.full(1 << bits, -1, dtype=np.int64), np.uint64(64 - bits)
+def _hash_table(bits):
+    """An open-addressing table of 2^bits slots: rows (key, -1 where empty; the key's voxel
+    number), side by side so that a probe reads one cache line; and the shift of the hash."""
+    return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
 
 
 @njit(cache=True, inline="always")
-def _slot(table, shift, key):
-    """The slot of `key` in `table`: where it is, or the empty slot where it goes (linear probing)."""
+def _voxel_number(table, shift, key, n_voxels):
+    """The number of the voxel `key` (linear probing); a new key gets `n_voxels`."""
+    mask = table.shape[0] - 1
     h = np.int64((np.uint64(key) * _FIBONACCI_HASH) >> shift)
-    while table[h] != -1 and table[h] != key:
-        h = (h + 1) & (table.shape[0] - 1)
-    return h
+    while table[h, 0] != -1 and table[h, 0] != key:
+        h = (h + 1) & mask
+    if table[h, 0] == -1:
+        table[h, 0] = key
+        table[h, 1] = n_voxels
+    return table[h, 1]
+
+
+@njit(cache=True)
+def _grown(table, n_voxels):
+    """`table` with room for twice `n_voxels` at half load: the table stays as small as the
+    voxels (a few hundred KB for a lidar scan's), not as the points, and so in cache."""
+    bits = 4
+    while (1 << bits) < 4 * n_voxels:
+        bits += 1
+    grown, shift = _hash_table(bits)
+    for h in range(table.shape[0]):
+        if table[h, 0] != -1:
+            _voxel_number(grown, shift, table[h, 0], table[h, 1])
+    return grown, shift
 
 
 @njit(cache=True)
 def count_voxels(points, size):
     """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them, in one pass)."""
-    if points.shape[0] == 0:
-        return 0
-    origin = _key_origin(points, size)
-    table, shift = _hash_table(points.shape[0])
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
     count = 0
-    last = -1
     for i in range(points.shape[0]):
-        key = _voxel_key(points, i, origin, size)
-        if key != last:
-            h = _slot(table, shift, key)
-            if table[h] == -1:
-                table[h] = key
-                count += 1
-            last = key
+        if _voxel_number(table, shift, _voxel_key(points, i, size), count) == count:
+            count += 1
+            if 2 * count > table.shape[0]:
+                table, shift = _grown(table, count)
     return count
 
 
 @njit(cache=True)
 def _voxel_statistics(points, voxel_size):
     """Per occupied voxel floor(x / voxel_size), the sums of em._features over its points (M, f),
-    voxels in the order of their first point.
-
-    A run of points in one voxel (a scan line crossing it) is summed in `run` and added to the
-    voxel's row once, so the hash table is probed once per run, not once per point.
-    """
+    voxels in the order of their first point: one pass, one hash probe per point."""
     n, d = points.shape
-    origin = _key_origin(points, voxel_size)
-    table, shift = _hash_table(n)
-    voxel_of_slot = np.empty(table.shape[0], dtype=np.int64)
-    n_features = 1 + d + d * (d + 1) // 2
-    sums = np.empty((n, n_features))
-    run = np.zeros(n_features)
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
+    sums = np.empty((n, 1 + d + d * (d + 1) // 2))
     n_voxels = 0
-    run_key = -1
-    for i in range(n + 1):
-        key = _voxel_key(points, i, origin, voxel_size) if i < n else -2  # -2: past the end
-        if key != run_key and run_key != -1:
-            h = _slot(table, shift, run_key)
-            if table[h] == -1:
-                table[h] = run_key
-                voxel_of_slot[h] = n_voxels
-                sums[n_voxels] = 0.0
-                n_voxels += 1
-            for q in range(n_features):
-                sums[voxel_of_slot[h], q] += run[q]
-            run[:] = 0.0
-        if i == n:
-            break
-        run_key = key
-        run[0] += 1.0
+    for i in range(n):
+        v = _voxel_number(table, shift, _voxel_key(points, i, voxel_size), n_voxels)
+        if v == n_voxels:
+            sums[v] = 0.0
+            n_voxels += 1
+            if 2 * n_voxels > table.shape[0]:
+                table, shift = _grown(table, n_voxels)
+        sums[v, 0] += 1.0
         j = 1 + d
         for a in range(d):
-            run[1 + a] += points[i, a]
+            sums[v, 1 + a] += points[i, a]
             for b in range(a, d):
-                run[j] += points[i, a] * points[i, b]
+                sums[v, j] += points[i, a] * points[i, b]
                 j += 1
     return sums[:n_voxels].copy()
 
@@ -254,6 +251,187 @@ def _split_groups(means, sums, n_groups):
     return group_sums[:count].copy()
 
 
+@njit(cache=True)
+def _pack_components(weights, mu, covs, packed):
+    """Each 3D component as one row of `packed` (K, 16), what _score reads: mu (3), L^-1 of
+    Sigma = L L^T (lower triangle by rows: 00, 10, 11, 20, 21, 22), Sigma^-1 = L^-T L^-1 (upper
+    triangle by rows, off-diagonal entries doubled: 00, 01, 02, 11, 12, 22) and
+    log pi - log det(2 pi Sigma) / 2. One contiguous row per component keeps a score within two
+    cache lines; the 3x3 Cholesky factor and its inverse are written out (no scratch arrays)."""
+    for k in range(weights.shape[0]):
+        c = covs[k]
+        l00 = np.sqrt(c[0, 0])
+        l10 = c[1, 0] / l00
+        l20 = c[2, 0] / l00
+        l11 = np.sqrt(c[1, 1] - l10 * l10)
+        l21 = (c[2, 1] - l20 * l10) / l11
+        l22 = np.sqrt(c[2, 2] - l20 * l20 - l21 * l21)
+        i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+        i10 = -l10 * i00 * i11
+        i21 = -l21 * i11 * i22
+        i20 = -(l20 * i00 + l21 * i10) * i22
+        row = packed[k]
+        row[0], row[1], row[2] = mu[k, 0], mu[k, 1], mu[k, 2]
+        row[3], row[4], row[5], row[6], row[7], row[8] = i00, i10, i11, i20, i21, i22
+        row[9] = i00 * i00 + i10 * i10 + i20 * i20
+        row[10] = 2.0 * (i10 * i11 + i20 * i21)
+        row[11] = 2.0 * i20 * i22
+        row[12] = i11 * i11 + i21 * i21
+        row[13] = 2.0 * i21 * i22
+        row[14] = i22 * i22
+        row[15] = np.log(weights[k]) - np.log(l00 * l11 * l22) - 1.5 * em._LOG_2PI
+
+
+@njit(cache=True, inline="always")
+def _score(packed, k, means, scatter, i):
+    """log pi_k + the mean over voxel i's points of log N(x | mu_k, Sigma_k): the Mahalanobis
+    distance of the voxel's mean plus tr(Sigma_k^-1 S_i) for its scatter S_i (Verbeek et al.)."""
+    x0 = means[i, 0] - packed[k, 0]
+    x1 = means[i, 1] - packed[k, 1]
+    x2 = means[i, 2] - packed[k, 2]
+    y0 = packed[k, 3] * x0
+    y1 = packed[k, 4] * x0 + packed[k, 5] * x1
+    y2 = packed[k, 6] * x0 + packed[k, 7] * x1 + packed[k, 8] * x2
+    trace = (
+        packed[k, 9] * scatter[i, 0]
+        + packed[k, 10] * scatter[i, 1]
+        + packed[k, 11] * scatter[i, 2]
+        + packed[k, 12] * scatter[i, 3]
+        + packed[k, 13] * scatter[i, 4]
+        + packed[k, 14] * scatter[i, 5]
+    )
+    return packed[k, 15] - 0.5 * (y0 * y0 + y1 * y1 + y2 * y2 + trace)
+
+
+@njit(cache=True)
+def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, items, packed, kept, n_kept, stats):
+    """E-step of voxels lo_i..hi_i fused with the M-step sums (into `stats`); returns the bound
+    sum_i n_i logsumexp_k(score_ik) over each voxel's kept components k.
+
+    Each voxel's responsibilities are spread over its kept.shape[1] most likely components
+    only. With `search`, those are found among the components listed for the voxel's hash cell
+    (`voxel_cell`, CSR `start`/`items`; all components where none is listed) and written to
+    kept[i, :n_kept[i]]; without, the kept ones are scored again. One loop for both: numba
+    compiles the shared responsibility code best inline.
+    """
+    k_count = packed.shape[0]
+    n_top = kept.shape[1]
+    everyone = np.arange(k_count)
+    log_p = np.empty(n_top)
+    stats[:] = 0.0
+    bound = 0.0
+    c = -1
+    comps = everyone
+    for i in range(lo_i, hi_i):
+        if search:
+            if voxel_cell[i] != c:
+                c = voxel_cell[i]
+                comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
+            count = 0
+            for j in range(comps.shape[0]):
+                s = _score(packed, comps[j], means, scatter, i)
+                if count == n_top and s <= log_p[n_top - 1]:
+                    continue
+                at = min(count, n_top - 1)  # insertion into the sorted top list
+                while at > 0 and log_p[at - 1] < s:
+                    log_p[at] = log_p[at - 1]
+                    kept[i, at] = kept[i, at - 1]
+                    at -= 1
+                log_p[at] = s
+                kept[i, at] = comps[j]
+                count = min(count + 1, n_top)
+            while count > 1 and log_p[count - 1] < log_p[0] + em._LOG_RESP_FLOOR:
+                count -= 1  # a responsibility below e^-20 of the largest would add nothing in later passes
+            n_kept[i] = count
+        else:
+            count = n_kept[i]
+            for j in range(count):
+                log_p[j] = _score(packed, kept[i, j], means, scatter, i)
+        best = -np.inf
+        for j in range(count):
+            best = max(best, log_p[j])
+        norm = 0.0
+        for j in range(count):
+            log_p[j] = np.exp(log_p[j] - best) if log_p[j] - best > em._LOG_RESP_FLOOR else 0.0
+            norm += log_p[j]
+        inverse = 1.0 / norm
+        for j in range(count):
+            if log_p[j] == 0.0:
+                continue
+            r = log_p[j] * inverse
+            k = kept[i, j]
+            for q in range(_N_FEATURES):
+                stats[k, q] += r * sums[i, q]
+        bound += sums[i, 0] * (best + np.log(norm))
+    return bound
+
+
+@njit(cache=True)
+def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol, n_kept):
+    """Truncated incremental EM on voxels in place, at most `max_iter` passes, until the bound per
+    point changes by less than `tol`; returns (passes, bound per point).
+
+    Passes _SEARCH_PASSES search each voxel's candidates (the components whose
+    _SEARCH_BOX_SIGMAS box reaches its hash cell) and keep its `n_kept` most likely; the other
+    passes score only those. Such a pass is an exact E-step for responsibilities restricted to
+    the kept components, so, as a full E-step, it does not lower a bound on the log-likelihood
+    (truncated EM, Luecke & Eggert 2010; a search may drop a kept component whose box no longer
+    reaches the voxel), and it costs a few scores per voxel instead of about ten.
+    The schedule is em._refine's: voxel i in block i mod B, the M-step after every block from
+    the second pass on (Neal & Hinton 1998).
+    """
+    m, d = means.shape
+    k_count = weights.shape[0]
+    n_blocks = max(1, min(em._MAX_BLOCKS, m // (_BLOCK_VOXELS_PER_COMPONENT * k_count)))
+    lo, cell, dims = em._hash_grid(means, k_count, m * _CELLS_PER_VOXEL)
+    order, voxel_cell = em._block_cell_order(means, n_blocks, lo, cell, dims)
+    means, sums, scatter = means[order], sums[order], scatter[order]
+    total_weight = sums[:, 0].sum()
+    block_stats = np.zeros((n_blocks, k_count, sums.shape[1]))
+    total = np.empty((k_count, sums.shape[1]))
+    packed = np.empty((k_count, 16))
+    kept = np.empty((m, n_kept), dtype=np.int64)
+    n_kept_of = np.zeros(m, dtype=np.int64)
+    start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+    previous = -np.inf
+    passes = 0
+    while passes < max_iter:
+        passes += 1
+        search = passes == 1 or passes in _SEARCH_PASSES
+        if search and passes > 1:  # boxes of the parameters at the start of the pass: candidates need not be exact
+            start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+        bound = 0.0
+        for b in range(n_blocks):
+            lo_i, hi_i = (b * m) // n_blocks, ((b + 1) * m) // n_blocks
+            if passes > 1 or b == 0:
+                _pack_components(weights, mu, covs, packed)
+            bound += _e_step_block(
+                means,
+                sums,
+                scatter,
+                lo_i,
+                hi_i,
+                search,
+                voxel_cell,
+                start,
+                items,
+                packed,
+                kept,
+                n_kept_of,
+                block_stats[b],
+            )
+            if passes > 1 or b == n_blocks - 1:
+                total[:] = 0.0  # the blocks' sums, without numpy's temporary
+                for c in range(n_blocks):
+                    total += block_stats[c]
+                em._m_step(total, reg_covar, weights, mu, covs)
+        bound /= total_weight
+        if abs(bound - previous) < tol:
+            break
+        previous = bound
+    return passes, bound
+
+
 def fit_mixture_voxels(
     points: np.ndarray,
     n_components: int,
@@ -263,7 +441,7 @@ def fit_mixture_voxels(
     max_iter: int = 100,
     tol: float = 1e-3,
 ) -> Mixture:
-    """A mixture of at most `n_components` Gaussians for (n, d) points, by EM on the statistics
+    """A mixture of at most `n_components` Gaussians for (n, 3) points, by EM on the statistics
     of voxels of size `voxel_size` (m) from a top-down split; `reg_covar`, `max_iter` and `tol`
     as in em.fit_mixture (tol bounds the change of the bound per point).
 
@@ -272,6 +450,8 @@ def fit_mixture_voxels(
     """
     points = em.checked_points(points, "fit_mixture_voxels")
     n, d = points.shape
+    if d != 3:
+        raise ValueError(f"fit_mixture_voxels: points must be (n, 3), got {points.shape}")
     if n == 0:
         return Mixture.empty(d)
     shift = points.mean(axis=0)
@@ -281,6 +461,6 @@ def fit_mixture_voxels(
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)
-    em._refine(means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol))
+    _voxel_em(means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol), _KEPT_COMPONENTS)
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), mu[keep] + shift, covs[keep], n)

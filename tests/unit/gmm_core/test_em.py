@@ -67,14 +67,12 @@ def test_sparse_e_step_matches_the_dense_one(dim):
     order = np.argsort(cells, kind="stable")
     x, cells = points[order], cells[order]
     features = em._features(x)
-    prec, log_norm, no_scatter = np.empty((k, dim, dim)), np.empty(k), np.empty((0, dim * (dim + 1) // 2))
-    em._prepare(weights, means, covs, prec, log_norm, np.empty((0, dim, dim)))
+    prec, log_norm = np.empty((k, dim, dim)), np.empty(k)
+    em._prepare(weights, means, covs, prec, log_norm)
     start, items = em._candidates(weights, means, covs, lo, cell, dims, 5.0)
     assert (np.diff(start)[cells] < k).all()  # the grid does prune
     stats = np.empty((k, features.shape[1]))
-    ll = em._e_step_block(
-        x, features, no_scatter, cells, 0, len(x), start, items, prec, prec[:0], means, log_norm, stats
-    )
+    ll = em._e_step_block(x, features, cells, 0, len(x), start, items, prec, means, log_norm, stats)
 
     log_comp = np.stack([np.log(w) + multivariate_normal(m, c).logpdf(x) for w, m, c in zip(weights, means, covs)])
     top = log_comp.max(axis=0)
