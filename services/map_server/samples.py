@@ -18,7 +18,7 @@ from gmm_core.sampling import ScanSamples, scan_samples
 
 from .nodes import Node, NodeKey
 
-SAMPLE_CACHE_COMPONENTS = 500_000  # components kept ready to sample (about 60 MB in 3D)
+SAMPLE_CACHE_COMPONENTS = 2_000_000  # components kept ready to sample (about 150 MB in 2D, 240 MB in 3D)
 # Decoded scan models kept for preparing a node's samples at the next resolution: a new node is asked
 # for at every resolution the viewer's tiles use, within moments (a node holds only its wire bytes).
 MODEL_CACHE_NODES = 512
