@@ -112,7 +112,7 @@ class MapSubscriber:
     def topic_of(sample: zenoh.Sample) -> str:
         return "/" + "/".join(str(sample.key_expr).split("/")[1:-2])
 
-    def settled(self, after: float, quiet: float = 1.5, timeout: float = 30.0):
+    def settled(self, after: float, quiet: float = 1.5, timeout: float = 90.0):
         """The last message, once one arrived after time.time() `after` and none for `quiet` s."""
 
         def last():
