@@ -1,4 +1,4 @@
-"""One robot's pose graph as a receiver holds it (protocol v2): node by node, the pose of the newest
+"""One robot's pose graph as a receiver holds it (protocol v2 and later): node by node, the pose of the newest
 revision that listed the node and that revision; the anchor likewise.
 
 The live map (nodes.NodeStore) and the durable store (store.Store) both apply updates through this
