@@ -149,7 +149,7 @@ def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, mod
         state,
         [
             (scan_key("default", "r", 0), encode(good)),
-            (scan_key("default", "r", 0), encode(good)),  # a resend: acked again, stored once
+            (scan_key("default", "r", 0), encode(good)),  # a resend in the same batch: stored once, acked once
             (scan_key("default", "x", 0), encode(good)),  # key names another robot
             (scan_key("default", "r", 5), encode(good)),  # key names another node
             (scan_key("default", "r", 9), encode(three_d)),  # a 3D scan into a 2D map
@@ -158,7 +158,7 @@ def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, mod
             ("gmmap/other/r/scan/1", encode(good)),  # another fleet
         ],
     )
-    assert [(k, a.kind, a.ids) for k, a in acks] == [("gmmap/default/r/ack", "scan", (0, 0))]
+    assert [(k, a.kind, a.ids) for k, a in acks] == [("gmmap/default/r/ack", "scan", (0,))]  # the resend: acked once
     assert state.store.nodes("default", "r") == {0}
     text = state.metrics.render().decode()
     for reason in ("key.robot", "key.node", "dimension", "type", "message", "key"):
