@@ -120,11 +120,16 @@ class Store:
             self._db.close()
 
     # -- writes: each call is one transaction, committed before it returns ---------------------
-    def put_scans(self, batch: Sequence[tuple[ScanMessage, bytes]]) -> list[bool]:
+    def put_scans(
+        self, batch: Sequence[tuple[ScanMessage, bytes]], entries: Sequence[ScanEntry] | None = None
+    ) -> list[bool]:
         """Store each (message, raw bytes) unless its (fleet, robot, node) is held; one commit.
+        `entries`: ScanEntry.of each message, when the caller has them already (ingest maps them too).
 
         Returns, per message, whether it was newly stored.
         """
+        if entries is None:
+            entries = [ScanEntry.of(m) for m, _ in batch]
         now = time.time()
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
@@ -132,10 +137,10 @@ class Store:
                 new = [
                     self._db.execute(
                         "INSERT OR IGNORE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw), *entry_row(m)),
+                        (m.fleet, m.robot, m.node, m.stamp, len(raw), now, bytes(raw), *entry_row(entry)),
                     ).rowcount
                     == 1
-                    for m, raw in batch
+                    for (m, raw), entry in zip(batch, entries)
                 ]
                 self._db.execute("COMMIT")
             except BaseException:
@@ -327,10 +332,9 @@ def _convert_merged(db: sqlite3.Connection, columns: set[str]) -> None:
     db.execute("DROP TABLE merged_poses")
 
 
-def entry_row(message: ScanMessage) -> tuple[bytes, int]:
+def entry_row(entry: ScanEntry) -> tuple[bytes, int]:
     """The `entry` and `components` columns of a scan: its node-frame box, sensor origin and pose
     (t, then R, float64 as decoded), so that a restart rebuilds its node without decoding the model."""
-    entry = ScanEntry.of(message)
     values = (entry.local_lo, entry.local_hi, entry.origin, entry.pose.t, entry.pose.R.ravel())
     return np.concatenate(values).astype("<f8").tobytes(), entry.components
 

@@ -36,10 +36,10 @@ class SlowStore(Store):
         self.committing = threading.Event()
         self.release = threading.Event()
 
-    def put_scans(self, batch):
+    def put_scans(self, batch, entries=None):
         self.committing.set()
         self.release.wait(10)
-        return super().put_scans(batch)
+        return super().put_scans(batch, entries)
 
 
 def wait_for(condition, timeout: float = 10.0) -> None:
