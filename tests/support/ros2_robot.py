@@ -124,6 +124,21 @@ class MapSubscriber:
 
         return wait_for(last, timeout, f"a settled {self.msgtype}")
 
+    def first(self, after: float, accept, timeout: float = 90.0):
+        """The first message received after time.time() `after` for which `accept(message)` holds.
+        A publisher that sends on change may have sent the awaited state before the caller saw the
+        change happen, so the caller passes the time of its own cause (e.g. its put), not of its look."""
+        looked = 0
+
+        def found():
+            nonlocal looked
+            if self.errors:
+                raise self.errors[0]
+            fresh, looked = self.received[looked:], len(self.received)
+            return next((message for stamp, message in fresh if stamp >= after and accept(message)), None)
+
+        return wait_for(found, timeout, f"a {self.msgtype} as expected")
+
 
 @dataclass(frozen=True)
 class IntelTopics:
