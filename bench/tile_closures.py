@@ -1,14 +1,17 @@
 """What loop closures cost a map server's tiles (issue 16): tracer seconds to bring the viewer's tiles
-up to date after new scans and after each fleet-wide closure, in process, one tracer thread.
+up to date after new scans and after the loop closures of each mission second, in process, one
+tracer thread, with the robots' closures at one instant and spread over the closure interval.
 
-The office simulation of `gmmap sim` (robots driving at --rate, a loop closure every 10 simulated
-seconds, all robots at once, each moving every node of its last 20 closures half the way to the
-truth: services.agent.sources.RelaxingCorrections) is fitted and encoded once; then, second by
-second of the mission, its scans are added to a FleetMap and every viewer tile (256 x 256 cells at
-0.05, 0.1 and 0.2 m over the world) is brought up to date, and at each closure the pose-graph
-updates are applied and the tiles brought up to date again. Printed per closure: nodes moved, tiles'
-update seconds with the quarter-cell re-pose tolerance (tiles.REPOSE_CELLS) and with every move
-traced (0), and the seconds of the new scans per mission second. Usage:
+The office simulation of `gmmap sim` (robots driving at --rate, each closing a loop every 10
+simulated seconds, each closure moving every node of the robot's last 20 closures half the way to
+the truth: services.agent.sources.RelaxingCorrections) is fitted and encoded once per closure
+schedule: every robot at the same instant (one optimiser for the whole fleet, the worst case) and
+robot i of n i/n of an interval early (independent back ends, services.sim.trajectory.ClosureSchedule,
+what `gmmap sim` runs). Then, second by second of the mission, the scans are added to a FleetMap
+and every viewer tile (256 x 256 cells at 0.05, 0.1 and 0.2 m over the world) is brought up to date,
+then the second's pose-graph updates are applied and the tiles brought up to date again. Printed
+per mission second with closures: nodes moved and the tiles' update CPU s, for both schedules;
+then the seconds of the new scans per mission second. Usage:
 
     .venv/bin/python bench/tile_closures.py [--robots 20] [--seconds 30] [--rate 10]
 """
@@ -26,9 +29,8 @@ sys.path.insert(0, str(ROOT))
 from gmm_core import Grid, fit_scan  # noqa: E402
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
 from services.agent.sources import Node, RelaxingCorrections  # noqa: E402
-from services.map_server import tiles  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
-from services.sim.fleet import correction_interval, robot_name, shared_fleet  # noqa: E402
+from services.sim.fleet import SimulatedFleet, correction_interval, robot_name  # noqa: E402
 from services.sim.record import evaluation_grid  # noqa: E402
 from services.sim.run import TILE  # noqa: E402
 
@@ -44,12 +46,13 @@ def viewer_grids(box: Grid) -> list[Grid]:
     return grids
 
 
-def mission(robots: int, seconds: float, rate: float, seed: int):
+def mission(robots: int, seconds: float, rate: float, seed: int, spread: bool):
     """Per mission second: the encoded scans of every robot, then the closures (updates) due."""
     scans = int(seconds * rate)
-    fleet = shared_fleet("office", robots, scans, rate, seed)
+    fleet = SimulatedFleet("office", robots, scans, rate, seed, spread_closures=spread)
     every = correction_interval(rate)
     streams = [fleet.scans(i, every) for i in range(robots)]
+    closures = [fleet.closures(i, every) for i in range(robots)]
     backs = [RelaxingCorrections() for _ in range(robots)]
     nodes: list[dict[int, Node]] = [{} for _ in range(robots)]
     steps = []
@@ -64,9 +67,9 @@ def mission(robots: int, seconds: float, rate: float, seed: int):
                 raw = encode(message)
                 messages.append((decode(raw), len(raw), raw))
                 nodes[i][k] = Node(k, None, scan.odom_pose, scan.pose)
-                if (k + 1) % every == 0:
+                if closures[i].closes_after(k + 1):
                     poses = backs[i].closure(nodes[i], final=False)
-                    updates.append(PoseGraphUpdate("f", name, (k + 1) // every, tuple(poses.items())))
+                    updates.append(PoseGraphUpdate("f", name, closures[i].revision(k + 1), tuple(poses.items())))
         steps.append((messages, updates))
     return fleet, steps
 
@@ -85,33 +88,36 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    start = time.perf_counter()
-    fleet, steps = mission(args.robots, args.seconds, args.rate, args.seed)
-    grids = viewer_grids(evaluation_grid(fleet))
-    print(f"{sum(len(m) for m, _ in steps)} scans fitted in {time.perf_counter() - start:.0f} s; {len(grids)} tiles")
-    tiles_cells = tiles.REPOSE_CELLS
-    maps = {cells: FleetMap("f", trace_threads=1) for cells in (tiles_cells, 0.0)}
-    new_s = {cells: 0.0 for cells in maps}
-    print("| mission s | nodes moved | tiles after the closure, CPU s: re-pose 1/4 cell | every move |")
-    print("|---|---|---|---|")
-    for second, (messages, updates) in enumerate(steps, 1):
-        closure = {}
-        for cells, fleet_map in maps.items():
-            tiles.REPOSE_CELLS = cells
+    schedules = {"at one instant": False, "spread": True}
+    closure_s, moved, new_s = {}, {}, {}
+    for name, spread in schedules.items():
+        start = time.perf_counter()
+        fleet, steps = mission(args.robots, args.seconds, args.rate, args.seed, spread)
+        grids = viewer_grids(evaluation_grid(fleet))
+        print(f"{name}: {sum(len(m) for m, _ in steps)} scans fitted in {time.perf_counter() - start:.0f} s")
+        fleet_map = FleetMap("f", trace_threads=1)
+        closure_s[name], moved[name], new_s[name] = {}, {}, 0.0
+        for second, (messages, updates) in enumerate(steps, 1):
             fleet_map.add_scans(messages)
-            new_s[cells] += update_all(fleet_map, grids)
+            new_s[name] += update_all(fleet_map, grids)
             for update in updates:
                 fleet_map.apply_poses(update)
             if updates:
-                closure[cells] = update_all(fleet_map, grids)
-        if updates:
-            moved = sum(len(u.poses) for u in updates)
-            print(f"| {second} | {moved} | {closure[tiles_cells]:.2f} | {closure[0.0]:.2f} |", flush=True)
+                closure_s[name][second] = update_all(fleet_map, grids)
+                moved[name][second] = sum(len(u.poses) for u in updates)
+    print(f"{len(grids)} tiles; tiles' update CPU s after the closures of each mission second (nodes moved)")
+    print("| mission s | " + " | ".join(schedules) + " |")
+    print("|---|" + "---|" * len(schedules))
+    for second in sorted(set().union(*(c.keys() for c in closure_s.values()))):
+        cells = [f"{closure_s[n][second]:.2f} ({moved[n][second]})" if second in closure_s[n] else "" for n in moved]
+        print(f"| {second} | " + " | ".join(cells) + " |")
     seconds = len(steps)
-    print(
-        "new scans, CPU s per mission second: "
-        + ", ".join(f"re-pose {cells} cell {s / seconds:.3f}" for cells, s in new_s.items())
-    )
+    for name in schedules:
+        costs = list(closure_s[name].values())
+        print(
+            f"{name}: closures {sum(costs) / seconds:.3f} CPU s per mission second, at most {max(costs):.2f} after one"
+            f" second's closures; new scans {new_s[name] / seconds:.3f} CPU s per mission second"
+        )
     return 0
 
 

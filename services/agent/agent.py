@@ -38,6 +38,7 @@ from protocol import (
 )
 from services.config import GmmapConfig, summary
 from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
+from services.sim.trajectory import ClosureSchedule
 from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
@@ -405,6 +406,7 @@ class Agent:
         o = self.options
         corrected: dict[int, Node] = {}  # the nodes a back end corrects
         back_end = RelaxingCorrections() if is_simulated(o.source) else FixedCorrections()
+        closures = nodes.closures if isinstance(nodes, SimulatedNodes) else ClosureSchedule(o.update_every)
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
         # those the store lacks and the outbox no longer keeps are fitted again.
@@ -428,7 +430,7 @@ class Agent:
                     delivered = self._send_node(node)
                 if delivered and node.corrected is not None:
                     corrected[node.node] = node
-            if corrected and o.update_every > 0 and count % o.update_every == 0 and count < len(nodes):
+            if corrected and closures.closes_after(count) and count < len(nodes):
                 updates += self.correct(back_end.closure(corrected, final=False)) is not None
         if corrected:  # and once at the end, as a back end closing its graph would
             updates += self.correct(back_end.closure(corrected, final=True)) is not None

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from gmm_core import Pose
 from services.datasets import FORMATS, RangeScan, match_by_timestamp, read_scans
 from services.sim.fleet import DEFAULT_RATE, SimSource, SimulatedFleet, correction_interval, shared_fleet
+from services.sim.trajectory import ClosureSchedule
 
 LOG_UPDATE_EVERY = 100  # scans between pose-graph updates of a log with --corrections
 
@@ -112,6 +113,10 @@ class SimulatedNodes:
 
     def __len__(self) -> int:
         return len(self.span)
+
+    @property
+    def closures(self) -> ClosureSchedule:
+        return self.fleet.closures(self.index, self.update_every)
 
     def __iter__(self) -> Iterator[Node]:
         scans = self.fleet.scans(self.index, self.update_every)

@@ -16,7 +16,7 @@ import numpy as np
 
 from services.datasets.common import RangeScan
 from services.sim.sensor import sensor_for
-from services.sim.trajectory import Motion, OdometryNoise, odometry, plan_paths, robot_events
+from services.sim.trajectory import ClosureSchedule, Motion, OdometryNoise, odometry, plan_paths, robot_events
 from services.sim.worlds import WORLDS, make_world
 
 DEFAULT_RATE = 5.0  # scans per second when the agent publishes as fast as it can
@@ -79,11 +79,14 @@ def robot_name(index: int) -> str:
 class SimulatedFleet:
     """`robots` paths of `scans` poses each, `speed / rate` apart, with drifting odometry."""
 
-    def __init__(self, world: str, robots: int, scans: int, rate: float = DEFAULT_RATE, seed: int = 0):
+    def __init__(
+        self, world: str, robots: int, scans: int, rate: float = DEFAULT_RATE, seed: int = 0, spread_closures=True
+    ):
         self.world = make_world(world, seed)
         self.sensor = sensor_for(self.world)
         self.rate = rate
         self.seed = seed
+        self.spread_closures = spread_closures  # False: every robot closes its loops at the same instant
         self.paths = plan_paths(self.world, robots, scans, seed, Motion(rate=rate))
         self.odometry = [
             odometry(path, OdometryNoise(), np.random.default_rng([seed, 7, i])) for i, path in enumerate(self.paths)
@@ -93,11 +96,15 @@ class SimulatedFleet:
     def robots(self) -> int:
         return len(self.paths)
 
+    def closures(self, index: int, correct_every: int) -> ClosureSchedule:
+        """Robot `index`'s loop closures, one every `correct_every` scans (0: never)."""
+        return ClosureSchedule.of_robot(index, self.robots, correct_every, self.spread_closures)
+
     def scans(self, index: int, correct_every: int) -> Iterator[RangeScan]:
         """Robot `index`'s scans, simulated one by one: `pose` true, `odom_pose` its own estimate.
 
-        The estimate is odometry chained onto the latest loop closure, one every `correct_every`
-        scans (0: never), so it equals what the robot knows when it publishes the scan.
+        The estimate is odometry chained onto the latest loop closure (`closures`), so it equals
+        what the robot knows when it publishes the scan.
         """
         noise_seed = int(np.random.SeedSequence([self.seed, 11, index]).generate_state(1)[0])
         events = robot_events(
@@ -106,7 +113,7 @@ class SimulatedFleet:
             self.paths[index],
             self.odometry[index],
             rate=self.rate,
-            correct_every=correct_every,
+            closures=self.closures(index, correct_every),
             seed=noise_seed,
         )
         while True:

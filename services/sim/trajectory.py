@@ -276,15 +276,45 @@ def path_pose(row: np.ndarray) -> Pose:
     return Pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), row[:3])
 
 
+@dataclass(frozen=True)
+class ClosureSchedule:
+    """When a simulated robot's SLAM back end closes a loop: after every `every` scans (0: never),
+    `offset` scans early. The robots' back ends run independently, so robot i of n closes i/n of an
+    interval before robot 0 and a fleet's closures spread over the interval rather than landing at
+    one instant (the worst case, one optimiser for the whole fleet: SimulatedFleet.spread_closures)."""
+
+    every: int
+    offset: int = 0
+
+    @staticmethod
+    def of_robot(index: int, robots: int, every: int, spread: bool = True) -> ClosureSchedule:
+        return ClosureSchedule(every, (index * every) // robots if spread and every else 0)
+
+    def closes_after(self, scans: int) -> bool:
+        """Whether a closure follows the robot's first `scans` scans."""
+        return self.every > 0 and (scans + self.offset) % self.every == 0
+
+    def revision(self, scans: int) -> int:
+        """The closures in the robot's first `scans` scans."""
+        return (scans + self.offset) // self.every if self.every else 0
+
+
 def robot_events(
-    world: World, sensor: Sensor, path: np.ndarray, odom: np.ndarray, *, rate: float, correct_every: int, seed: int
+    world: World,
+    sensor: Sensor,
+    path: np.ndarray,
+    odom: np.ndarray,
+    *,
+    rate: float,
+    closures: ClosureSchedule,
+    seed: int,
 ) -> Iterator[tuple]:
     """A robot's run as events, in order:
 
     ("scan", RangeScan): node = scan.index, `pose` the true pose, `odom_pose` the robot's own
         estimate when it publishes the scan: its odometry chained onto the latest corrected pose.
-    ("correction", revision, [(node, Pose), ...]): every `correct_every` scans (0: never), a
-        pose-graph update setting every node so far to its true pose, as a SLAM back end would.
+    ("correction", revision, [(node, Pose), ...]): after the scans `closures` says, a pose-graph
+        update setting every node so far to its true pose, as a SLAM back end would.
     """
     rng = np.random.default_rng([seed, 13])
     true = [path_pose(row) for row in path]
@@ -295,6 +325,6 @@ def robot_events(
             "scan",
             simulate_scan(world, sensor, true[k], rng, index=k, stamp=k / rate, odom_pose=to_estimate.compose(odo[k])),
         )
-        if correct_every and (k + 1) % correct_every == 0:
-            yield "correction", (k + 1) // correct_every, [(j, true[j]) for j in range(k + 1)]
+        if closures.closes_after(k + 1):
+            yield "correction", closures.revision(k + 1), [(j, true[j]) for j in range(k + 1)]
             to_estimate = true[k].compose(odo[k].inverse())

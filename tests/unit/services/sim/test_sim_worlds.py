@@ -12,6 +12,7 @@ from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
 from services.sim.sensor import Laser2D, Lidar3D, beam_directions, sensor_for, simulate_scan
 from services.sim.trajectory import (
+    ClosureSchedule,
     Motion,
     OdometryNoise,
     _astar,
@@ -230,11 +231,23 @@ def test_odometry_drift_grows_with_distance(worlds):
     assert 0.05 < rms[599] < 0.05 * 120  # after 120 m: off, but by less than 5 % of the distance
 
 
+def test_a_fleets_closures_spread_over_the_interval_unless_asked_to_land_at_once():
+    every, robots = 100, 20
+    spread = [ClosureSchedule.of_robot(i, robots, every) for i in range(robots)]
+    after = [[n for n in range(1, 301) if s.closes_after(n)] for s in spread]
+    assert after[0] == [100, 200, 300] and after[1] == [95, 195, 295] and after[19] == [5, 105, 205]
+    assert len({a[0] for a in after}) == robots  # no two robots close at the same scan
+    assert [spread[1].revision(n) for n in (94, 95, 195)] == [0, 1, 2]
+    together = {ClosureSchedule.of_robot(i, robots, every, spread=False) for i in range(robots)}
+    assert together == {ClosureSchedule(every)}
+    assert not any(ClosureSchedule.of_robot(3, robots, 0).closes_after(n) for n in range(1, 300))
+
+
 def test_events_publish_estimates_and_corrections(worlds):
     world = worlds["office"]
     path = plan_paths(world, 1, 25, seed=2)[0]
     odom = odometry(path, OdometryNoise(heading_walk=0.05), np.random.default_rng(0))
-    events = list(robot_events(world, Laser2D(), path, odom, rate=5.0, correct_every=10, seed=0))
+    events = list(robot_events(world, Laser2D(), path, odom, rate=5.0, closures=ClosureSchedule(10), seed=0))
     kinds = [e[0] for e in events]
     assert kinds.count("scan") == 25 and kinds.count("correction") == 2
     assert kinds.index("correction") == 10
