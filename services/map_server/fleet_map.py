@@ -12,7 +12,7 @@ tiles.TileCache (the incremental tile update) and tracers.TracerPool.
 from __future__ import annotations
 
 import threading
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from gmm_core.occupancy import DEFAULT_PRIOR
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
 
-from .nodes import NodeStore, ScanEntry
+from .nodes import NodeKey, NodeStore, ScanEntry
 from .samples import SampleCache
 from .tiles import TileAnswer, TileCache
 from .tracers import TracerPool
@@ -42,15 +42,18 @@ class FleetMap:
         samples_per_cell: float = 4.0,
         prior: float = DEFAULT_PRIOR,
         trace_threads: int | None = None,
+        stored_bytes: Callable[[NodeKey], bytes] | None = None,
     ):
+        """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
+        their models nor their bytes (a server keeps a shift's scans: nodes.py)."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self._lock = threading.RLock()
-        self._samples = SampleCache(samples_per_cell)
+        self._samples = SampleCache(samples_per_cell, stored_bytes)
         self._tracers = TracerPool(self.trace_threads, self._samples)
-        self._nodes = NodeStore(moved=lambda lo, hi: self._tiles.mark_stale(lo, hi))
+        self._nodes = NodeStore(lambda lo, hi: self._tiles.mark_stale(lo, hi), hold_models=stored_bytes is None)
         self._tiles = TileCache(self._lock, self._nodes, self._tracers, prior)
 
     @property
@@ -103,7 +106,7 @@ class FleetMap:
         what the analytic evidence (gmm_core.analytic) is computed from."""
         with self._lock:  # a snapshot of the reaching nodes and their world poses
             reaching = self._nodes.reaching(grid, robots)
-        return [(posed.node.model, posed.pose) for posed in reaching.values()]
+        return [(self._samples.model(posed.node), posed.pose) for posed in reaching.values()]
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed

@@ -2,11 +2,11 @@
 that places them (Eq. 2, applied at query time), a spatial index of their world boxes, and the
 change log a cached tile reads to learn what moved since it was traced.
 
-Held for a whole shift, so held compactly: a server's node keeps the scan message's wire bytes
-(about 1 KB in 2D) rather than the decoded model (several times that), and decodes it when its
-samples are drawn (samples.SampleCache, itself bounded); a node's world pose is made once per
-pose change and shared by every tile that counts it; the change log keeps each node once, at its
-latest change.
+Held for a whole shift, so held compactly: a server's node holds neither its model nor the scan
+message's bytes (about 1 KB in 2D, several in 3D) but reads them from the store when its samples
+are drawn (samples.SampleCache, itself bounded); without a store a node keeps the wire bytes,
+several times smaller than the decoded model. A node's world pose is made once per pose change and
+shared by every tile that counts it; the change log keeps each node once, at its latest change.
 
 Not thread-safe: the FleetMap calls it under its lock.
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
 from gmm_core.sampling import sample_bounds, scan_seed
-from protocol import PoseGraphUpdate, ScanMessage, decode
+from protocol import PoseGraphUpdate, ScanMessage
 
 from .pose_graph import PoseGraph
 
@@ -105,8 +105,8 @@ class Node:
     """One scan as the map holds it: its model stays in the node frame, only its pose changes."""
 
     key: NodeKey
-    raw: bytes | None  # the ScanMessage as received, holding the model; None: `held_model` holds it
-    held_model: ScanModel | None
+    raw: bytes | None  # the ScanMessage as received, holding the model; None: `held_model` or the store
+    held_model: ScanModel | None  # None: `raw` holds it, or the store (samples.SampleCache.model)
     origin: np.ndarray  # (d,) sensor origin in the node frame (the model's)
     map_pose: Pose  # in the robot's map frame: the newest correction, else the scan's own estimate
     seed: int  # of its samples: scan_seed(robot, node)
@@ -115,11 +115,6 @@ class Node:
     reach: float  # how far from the node frame's origin its rays reach at most (the box's far corner), metres
     pose_changes: int = 0  # bumped whenever a correction sets `map_pose`
     posed: Posed | None = None  # where it stood when last asked (Robot.posed), shared by the tiles counting it
-
-    @property
-    def model(self) -> ScanModel:
-        """The scan model in the node frame, never refitted: held, or decoded from `raw`."""
-        return self.held_model if self.raw is None else decode(self.raw, expect=ScanMessage).model
 
 
 class Posed(NamedTuple):
@@ -256,8 +251,9 @@ class NodeStore:
     `moved(lo, hi)` is called with the world boxes (n, d) that new or moved nodes entered or left.
     """
 
-    def __init__(self, moved: Callable[[np.ndarray, np.ndarray], None]):
+    def __init__(self, moved: Callable[[np.ndarray, np.ndarray], None], hold_models: bool = True):
         self._moved = moved
+        self.hold_models = hold_models  # False: a store holds every scan's bytes, nodes keep neither
         self.dim: int | None = None  # of the first scan: a map is 2D or 3D for good
         self.robots: dict[str, Robot] = {}
         self.log = ChangeLog()
@@ -291,8 +287,8 @@ class NodeStore:
             lo, hi = entry.local_lo, entry.local_hi
             node = Node(
                 NodeKey(entry.robot, entry.node),
-                entry.raw,
-                entry.model,
+                entry.raw if self.hold_models else None,
+                entry.model if self.hold_models else None,
                 entry.origin,
                 robot.graph.pose(entry.node) or entry.pose,  # a correction that came before its scan, else its estimate
                 scan_seed(entry.robot, entry.node),

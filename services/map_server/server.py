@@ -215,6 +215,7 @@ def run_server(
         samples_per_cell=reconstruction.samples_per_cell,
         prior=reconstruction.prior,
         trace_threads=options.trace_threads,
+        stored_bytes=store.scan_reader(options.fleet),
     )
     state = ServerState(options.fleet, fleet_map, store)
     zenoh_side: ZenohSide | None = None

@@ -20,7 +20,7 @@ import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +30,7 @@ from gmm_core import Pose
 from gmm_core.pose import poses_from_arrays
 from protocol import PoseGraphUpdate, ScanMessage, StoreInventory, decode
 
-from .nodes import ScanEntry
+from .nodes import NodeKey, ScanEntry
 from .pose_graph import PoseGraph
 
 DB_NAME = "gmmap.db"
@@ -236,6 +236,26 @@ class Store:
         with self._lock:
             rows = self._db.execute("SELECT node FROM scans WHERE fleet = ? AND robot = ?", (fleet, robot))
             return {node for (node,) in rows}
+
+    def scan_reader(self, fleet: str) -> Callable[[NodeKey], bytes]:
+        """A scan's bytes by (robot, node), read from any thread (a map server's nodes hold none:
+        nodes.py): each thread reads on a connection of its own, which in WAL mode never waits for
+        ingest's commits, so a tracer drawing a node's samples does not queue behind the writer."""
+        local = threading.local()
+        uri = f"{self.path.resolve().as_uri()}?mode=ro"
+
+        def read(key: NodeKey) -> bytes:
+            db = getattr(local, "db", None)
+            if db is None:
+                db = local.db = sqlite3.connect(uri, uri=True, check_same_thread=False)
+            row = db.execute(
+                "SELECT raw FROM scans WHERE fleet = ? AND robot = ? AND node = ?", (fleet, key.robot, key.node)
+            ).fetchone()
+            if row is None:
+                raise LookupError(f"scan {key.robot}/{key.node} of fleet {fleet!r} is not in the store {self.path}")
+            return row[0]
+
+        return read
 
     def scan_bytes(self, fleet: str, robot: str, node: int) -> bytes | None:
         with self._lock:
