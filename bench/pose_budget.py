@@ -108,7 +108,7 @@ def run_robot(index: int, robots: int, scans: int, rate: float, tolerances: list
             if isinstance(rule, ToleranceRule):
                 rule.sent.scan_sent(node.node, node.estimate, reach)
         corrected[node.node] = node
-        if count % every == 0 and count < len(nodes):
+        if nodes.closures.closes_after(count) and count < len(nodes):
             close(final=False)
     close(final=True)
     return {"totals": totals, "reach": np.percentile(reaches, [5, 50, 95]).tolist()}

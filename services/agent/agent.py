@@ -400,13 +400,17 @@ class Agent:
         return prepared
 
     # -- a whole source ------------------------------------------------------------------------
-    def publish_all(self, nodes: Sequence[Node] | SimulatedNodes, progress=None) -> int:
-        """Fit and send every node the keyframe policy keeps, with pose-graph updates; returns the
-        updates sent. `kept` counts the nodes, `resumed` those a previous run got through."""
+    def publish_all(
+        self, nodes: Sequence[Node] | SimulatedNodes, progress=None, closures: ClosureSchedule | None = None
+    ) -> int:
+        """Fit and send every node the keyframe policy keeps, with pose-graph updates after the
+        scans `closures` says (default: a simulated robot's own, else every update_every); returns
+        the updates sent. `kept` counts the nodes, `resumed` those a previous run got through."""
         o = self.options
         corrected: dict[int, Node] = {}  # the nodes a back end corrects
         back_end = RelaxingCorrections() if is_simulated(o.source) else FixedCorrections()
-        closures = nodes.closures if isinstance(nodes, SimulatedNodes) else ClosureSchedule(o.update_every)
+        if closures is None:
+            closures = closure_schedule(nodes, o.update_every)
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
         # those the store lacks and the outbox no longer keeps are fitted again.
@@ -509,6 +513,11 @@ def _requeued(agent: Agent) -> str:
     return f" (the store lacked {lacked} acknowledged messages: {'; '.join(parts)})"
 
 
+def closure_schedule(nodes: Sequence[Node] | SimulatedNodes, update_every: int) -> ClosureSchedule:
+    """When a source's back end closes loops: a simulated robot's own schedule, else every `update_every` scans."""
+    return nodes.closures if isinstance(nodes, SimulatedNodes) else ClosureSchedule(update_every)
+
+
 def run_agent(
     o: AgentConfig,
     fit: FitConfig,
@@ -538,6 +547,7 @@ def run_agent(
     try:
         from tqdm import tqdm
 
+        closures = closure_schedule(nodes, o.update_every)  # of the source: prepared nodes are a list
         if ready is not None:
             with tqdm(total=len(nodes), desc=f"{o.robot} prepare", unit="scan", file=sys.stderr, leave=False) as bar:
                 nodes = agent.prepare(nodes, bar.update)
@@ -546,7 +556,7 @@ def run_agent(
         # Against the store's inventory first, when it answers soon: what it lacks is sent again.
         agent.wait_reconciled(min(o.timeout, 5.0))
         with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:
-            updates = agent.publish_all(nodes, bar.update)
+            updates = agent.publish_all(nodes, bar.update, closures)
         reconciled = agent.wait_reconciled(o.timeout)
         if reconciled:  # a store that answered late may lack what is no longer kept
             agent.refit(nodes)
