@@ -34,11 +34,18 @@ WEIGHT_QUANTUM = 2.0**-26
 
 def samples_per_component(mixture: Mixture, resolution: float, samples_per_cell: float) -> np.ndarray:
     """n_k = ceil(samples_per_cell * max(N pi_k, cells covered by the 2-sigma box of k))."""
+    return _counts(_sigmas(mixture), mixture.support * mixture.weights, resolution, samples_per_cell)
+
+
+def _sigmas(mixture: Mixture) -> np.ndarray:
+    """(K, d) standard deviations along each component's principal axes."""
     if mixture.n_components == 0:
-        return np.zeros(0, dtype=np.int64)
-    sigmas = np.sqrt(np.clip(np.linalg.eigvalsh(mixture.covariances), 0.0, None))
+        return np.zeros((0, mixture.dim))
+    return np.sqrt(np.clip(np.linalg.eigvalsh(mixture.covariances), 0.0, None))
+
+
+def _counts(sigmas: np.ndarray, expected_points: np.ndarray, resolution: float, samples_per_cell: float) -> np.ndarray:
     cells = np.prod(np.maximum(1.0, 4.0 * sigmas / resolution), axis=1)
-    expected_points = mixture.support * mixture.weights
     n = np.ceil(samples_per_cell * np.maximum(expected_points, cells))
     return np.clip(n, 1, MAX_SAMPLES_PER_COMPONENT).astype(np.int64)
 
@@ -157,23 +164,74 @@ def sample_bounds(mixture: Mixture) -> tuple[np.ndarray, np.ndarray]:
 
 def mixture_samples(mixture: Mixture, counts: np.ndarray, key: np.uint64) -> MixtureSamples:
     """The samples `counts[k]` of each component, weights N pi_k / counts[k] (quantised)."""
-    counts = np.ascontiguousarray(counts, dtype=np.int64)
-    weights = np.round(mixture.support * mixture.weights / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
-    offsets = np.cumsum(counts) - counts
-    chol = np.linalg.cholesky(mixture.covariances) if mixture.n_components else mixture.covariances
-    return MixtureSamples(mixture.means, np.ascontiguousarray(chol), counts, offsets, weights, key)
+    return MixtureSampler.of(mixture).samples(counts, key)
+
+
+@dataclass(frozen=True)
+class MixtureSampler:
+    """What sampling a mixture needs at any resolution, made once: means, Cholesky factors,
+    principal standard deviations and expected points N pi_k. Only the counts per component,
+    their offsets and the weights depend on the resolution (`at`), a tenth of the bytes."""
+
+    means: np.ndarray  # (K, d)
+    chol: np.ndarray  # (K, d, d)
+    sigmas: np.ndarray  # (K, d)
+    expected_points: np.ndarray  # (K,) N pi_k
+
+    @staticmethod
+    def of(mixture: Mixture) -> MixtureSampler:
+        chol = np.linalg.cholesky(mixture.covariances) if mixture.n_components else mixture.covariances
+        return MixtureSampler(
+            mixture.means, np.ascontiguousarray(chol), _sigmas(mixture), mixture.support * mixture.weights
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return self.means.nbytes + self.chol.nbytes + self.sigmas.nbytes + self.expected_points.nbytes
+
+    def samples(self, counts: np.ndarray, key: np.uint64) -> MixtureSamples:
+        counts = np.ascontiguousarray(counts, dtype=np.int64)
+        weights = np.round(self.expected_points / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+        return MixtureSamples(self.means, self.chol, counts, np.cumsum(counts) - counts, weights, key)
+
+    def at(self, resolution: float, samples_per_cell: float, key: np.uint64) -> MixtureSamples:
+        return self.samples(_counts(self.sigmas, self.expected_points, resolution, samples_per_cell), key)
+
+
+@dataclass(frozen=True)
+class ScanSampler:
+    """A scan model ready to sample at any resolution (both mixtures' MixtureSampler, the sensor
+    origin and the seed): `at(resolution)` is scan_samples of the model without its linear algebra."""
+
+    occupied: MixtureSampler
+    free: MixtureSampler
+    origin: np.ndarray
+    seed: int
+    samples_per_cell: float
+
+    @staticmethod
+    def of(model: ScanModel, seed: int, samples_per_cell: float = 1.0) -> ScanSampler:
+        return ScanSampler(
+            MixtureSampler.of(model.occupied), MixtureSampler.of(model.free), model.origin, seed, samples_per_cell
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return self.occupied.nbytes + self.free.nbytes
+
+    def at(self, resolution: float) -> ScanSamples:
+        keys = np.random.SeedSequence([self.seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
+        return ScanSamples(
+            self.occupied.at(resolution, self.samples_per_cell, keys[0]),
+            self.free.at(resolution, self.samples_per_cell, keys[1]),
+            self.origin,
+        )
 
 
 def scan_samples(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0) -> ScanSamples:
     """The samples of both mixtures of `model` at `resolution`, from `seed`: the same (model,
     resolution, seed), the same samples."""
-    keys = np.random.SeedSequence([seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
-    occupied, free = model.occupied, model.free
-    return ScanSamples(
-        mixture_samples(occupied, samples_per_component(occupied, resolution, samples_per_cell), keys[0]),
-        mixture_samples(free, samples_per_component(free, resolution, samples_per_cell), keys[1]),
-        model.origin,
-    )
+    return ScanSampler.of(model, seed, samples_per_cell).at(resolution)
 
 
 @njit(cache=True, nogil=True)

@@ -123,7 +123,7 @@ class FleetMap:
         with self._lock:
             return {
                 **self._tiles.stats(),
-                "sample_components": self._samples.components_held,
+                "sample_bytes": self._samples.bytes_held,
                 "change_log": len(self._nodes.log),
             }
 

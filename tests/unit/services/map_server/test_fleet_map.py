@@ -232,7 +232,7 @@ def test_query_touches_only_nodes_that_reach_it(fitted):
         fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
     far = Grid.from_bbox([500.0, 500.0], [501.0, 501.0], 0.1)
     assert np.all(fleet.occupancy(far) == 0.5)
-    assert fleet.cache_stats()["sample_components"] == 0  # no node was sampled
+    assert fleet.cache_stats()["sample_bytes"] == 0  # no node was sampled
     lo, hi = fleet.extent()
     assert np.all(lo < GRID.upper) and np.all(hi > GRID.origin)
 
