@@ -33,7 +33,7 @@ from protocol import MapReply, encode
 from services.export.octomap_tree import NOT_3D, bt_bytes, ot_bytes, reach_problem
 from services.export.pgm import map_classes, pgm_bytes
 from services.export.ply import ply_bytes
-from services.map_server.tiles import MAX_STALE_S
+from services.map_server.tiles import MAX_STALE_S, PATIENCE_S
 from services.map_server.tokens import TokenFile
 from services.map_server.tracers import TracersSaturated
 from services.render import occupancy_png, probability_png
@@ -223,9 +223,9 @@ def create_app(
     async def internal_error(request: Request, exc: Exception):
         return error(500, None, f"internal error: {type(exc).__name__}")
 
-    def occupancy_of(grid, robots):
+    def occupancy_of(grid, robots, max_age: float = MAX_STALE_S):
         try:
-            return fmap.occupancy_answer(grid, robots, may_shed=True)
+            return fmap.occupancy_answer(grid, robots, may_shed=True, max_age=max_age, patience=PATIENCE_S)
         except ValueError as e:  # the map's own checks (a dimension that changed meanwhile)
             raise ApiError("bbox", str(e)) from None
 
@@ -249,7 +249,8 @@ def create_app(
                 "same as a full OctoMap tree whose leaves hold the MAP log-odds log(p / (1 - p)); ply: the "
                 "occupied cell centres with their probability. "
                 "X-Map-Age: seconds the state served has been out of date "
-                f"(0: up to date; at most {MAX_STALE_S:g} when a previous state is served under load)",
+                f"(0: up to date; at most max_age when a previous state is served: under load, or while "
+                f"an update takes over {PATIENCE_S:g} s)",
             },
             503: {
                 "model": BusyBody,
@@ -297,9 +298,17 @@ def create_app(
             ),
             **_range(params.MIN_VARIANCE, params.MAX_VARIANCE),
         ),
+        max_age: float = Query(
+            MAX_STALE_S,
+            description=f"the oldest state to serve: seconds it has been out of date, 0 to {MAX_STALE_S:g}; 0 "
+            "waits for every change stored before the request (and may be shed under load)",
+            **_range(0.0, MAX_STALE_S),
+        ),
         who: Access = Depends(access),
     ) -> Response:
         start = time.perf_counter()
+        if not 0.0 <= max_age <= MAX_STALE_S:
+            raise ApiError("max_age", f"must lie in [0, {MAX_STALE_S:g}] seconds, got {max_age}")
         res = params.resolution(resolution)
         lo, hi = params.bbox(bbox)
         params.check_dimension(len(lo), fmap.dim, "bbox")
@@ -316,7 +325,7 @@ def create_app(
         else:  # the exports classify by Eq. 12 too
             picture = (format, sigma2) if format in EXPORTS else None
         try:
-            answer = occupancy_of(grid, selected)
+            answer = occupancy_of(grid, selected, max_age)
         except TracersSaturated as busy:
             return shed(busy)
         prob = answer.prob

@@ -144,7 +144,7 @@ def fetch(
         slab_lo[axis] = grid.origin[axis] + start * resolution
         slab_hi[axis] = grid.origin[axis] + stop * resolution
         box = ",".join(repr(float(v)) for v in (*slab_lo, *slab_hi))
-        body, headers = _get(client, f"/v1/occupancy?bbox={quote(box)}&resolution={resolution!r}&format=npy")
+        body, headers = _get(client, f"/v1/occupancy?bbox={quote(box)}&resolution={resolution!r}&format=npy&max_age=0")
         prob = np.load(io.BytesIO(body), allow_pickle=False)
         expected = (stop - start, *grid.array_shape[1:])
         if prob.shape != expected:

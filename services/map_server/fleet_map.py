@@ -23,7 +23,7 @@ from services.host import cpu_cores
 
 from .nodes import NodeKey, NodeStore, ScanEntry
 from .samples import SampleCache
-from .tiles import TileAnswer, TileCache
+from .tiles import MAX_STALE_S, TileAnswer, TileCache
 from .tracers import TracerPool
 
 
@@ -114,10 +114,17 @@ class FleetMap:
         return self._tiles.occupancy(grid, robots)
 
     def occupancy_answer(
-        self, grid: Grid, robots: Sequence[str] | None = None, *, may_shed: bool = False
+        self,
+        grid: Grid,
+        robots: Sequence[str] | None = None,
+        *,
+        may_shed: bool = False,
+        max_age: float = MAX_STALE_S,
+        patience: float | None = None,
     ) -> TileAnswer:
-        """occupancy with the age and kind of the state served; tiles.TileCache.answer (which may shed)."""
-        return self._tiles.answer(grid, robots, may_shed=may_shed)
+        """occupancy with the age and kind of the state served; tiles.TileCache.answer (which may
+        shed, serve a state up to `max_age` s out of date, and wait `patience` s for an update)."""
+        return self._tiles.answer(grid, robots, may_shed=may_shed, max_age=max_age, patience=patience)
 
     def cache_stats(self) -> dict:
         with self._lock:

@@ -42,12 +42,19 @@ log = logging.getLogger("gmmap.server")
 
 TILE_CACHE_BYTES = 256 << 20  # counts and probabilities of cached tiles
 MAX_STALE_S = 2.0  # a previous state is served only while out of date for at most this long
+# A request whose tile has a previous state it may be served waits at most this long for the tile's
+# update (run in the background) before it is served that state: an update after a loop closure
+# can take seconds, and a viewer asks again soon (HTTP answers; in-process callers update the tile).
+PATIENCE_S = 0.2
 COALESCE_S = 0.5  # under load, a state this young ...
 COALESCE_CHANGES = 16  # ... with at most this many changes since is served instead of updated
 # A moved node is traced again into a tile only once some ray end of it moved by more than this many
 # of the tile's cells since the pose the tile counts it at: an optimiser moves every node of a loop a
 # little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
 REPOSE_CELLS = 0.25
+
+
+_WAIT = object()  # TileCache._cached: wait for the update under way
 
 
 @dataclass(frozen=True)
@@ -78,6 +85,7 @@ class Tile:
     dirty_since: float | None = None  # that of the first change since the running (or last) update began
     lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
     refreshing: bool = False  # an update in the background is queued or running (TileCache._refresh)
+    updated: threading.Condition | None = None  # on the map's lock: notified when an update ends
 
     @property
     def nbytes(self) -> int:
@@ -156,14 +164,27 @@ class TileCache:
         """p(occupied) on `grid`, Eq. 11 (the array of `answer`)."""
         return self.answer(grid, robots).prob
 
-    def answer(self, grid: Grid, robots: Sequence[str] | None = None, *, may_shed: bool = False) -> TileAnswer:
+    def answer(
+        self,
+        grid: Grid,
+        robots: Sequence[str] | None = None,
+        *,
+        may_shed: bool = False,
+        max_age: float = MAX_STALE_S,
+        patience: float | None = None,
+    ) -> TileAnswer:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed.
 
         A request that would trace and finds the tracers saturated raises TracersSaturated when
         `may_shed` (before any work: no tile is made), else queues. See `_cached` for when a
-        previous state is served instead of an update; a lone query, with no other request nor
-        trace running, always sees every change applied before it.
+        previous state (out of date for at most `max_age` s, at most MAX_STALE_S) is served instead
+        of an update. `patience`: s a request waits for an update that such a state can stand in
+        for (run in the background) before it is served that state; None: with idle tracers the
+        request updates the tile itself, so a lone query, with no other request nor trace running,
+        sees every change applied before it. `max_age` 0: every change, whatever the load.
         """
+        max_age = min(max_age, MAX_STALE_S)
+        deadline = None if patience is None else time.monotonic() + patience
         robots = None if robots is None else tuple(sorted(robots))
         key = (tuple(grid.origin), grid.resolution, grid.shape, robots)
         with self._lock:
@@ -173,16 +194,27 @@ class TileCache:
                 self._admit(may_shed)
                 # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
                 tile = Tile(
-                    grid, np.zeros(grid.array_shape), np.zeros(grid.array_shape), self._nodes.log.end, robots=robots
+                    grid,
+                    np.zeros(grid.array_shape),
+                    np.zeros(grid.array_shape),
+                    self._nodes.log.end,
+                    robots=robots,
+                    updated=threading.Condition(self._lock),
                 )
                 self._tiles[key] = tile
                 self._bytes += tile.nbytes
                 self._boxes = None
                 self._evict()
             self._tiles.move_to_end(key)
+        waited = False
         while True:
             with self._lock:
-                cached = self._cached(tile)
+                patient = deadline is not None and time.monotonic() < deadline
+                cached = self._cached(tile, max_age, patient, waited)
+                if cached is _WAIT:
+                    tile.updated.wait(deadline - time.monotonic())
+                    waited = True
+                    continue
                 if cached is not None:
                     return cached
                 self._admit(may_shed)  # it would trace, or wait for a trace: shed if they are saturated
@@ -218,6 +250,7 @@ class TileCache:
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
+                    tile.updated.notify_all()
                 raise
             prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
             prob.setflags(write=False)
@@ -226,6 +259,7 @@ class TileCache:
                 # query updates again, and this state has been out of date since that change.
                 tile.prob, tile.prob_at, tile.seen = prob, changes, seen
                 tile.outdated_since = tile.dirty_since
+                tile.updated.notify_all()
                 if first:
                     self._misses += 1
                 else:
@@ -247,31 +281,42 @@ class TileCache:
         except Exception:  # the tile stays as it was; the next request updates it or says why
             log.exception("background update of a tile failed")
 
-    def _cached(self, tile: Tile) -> TileAnswer | None:
-        """The answer from the cache, or None when this request must update the tile (or wait for
-        the request that does). Under the map's lock.
+    def _cached(self, tile: Tile, max_age: float, patient: bool, waited: bool = False) -> TileAnswer | None | object:
+        """The answer from the cache; None when this request must update the tile (or wait for the
+        request that does); _WAIT when it should wait for the update under way (`patient`: its
+        patience lasts; `waited`: it did, so an up-to-date state is the update it waited for).
+        Under the map's lock.
 
         Up to date: fresh. Otherwise the previous state, while it has been out of date for at most
-        MAX_STALE_S: stale while an update of the tile is under way; with every tracer busy (or
+        `max_age`: stale while an update of the tile is under way; with every tracer busy (or
         saturated), coalesced while the state is at most COALESCE_S old with at most
         COALESCE_CHANGES changes since (a busy tile is updated once for many changes), else stale
         while an update starts in the background. So under load a request never waits for an
-        update that a previous state can stand in for; with idle tracers it updates the tile itself.
+        update that a previous state can stand in for; with idle tracers it updates the tile itself,
+        or, patient, starts the update in the background and waits for it while its patience lasts.
         """
         if tile.prob is None:
             return None
         if tile.prob_at == tile.changes:
+            if waited:
+                return TileAnswer(tile.prob, 0.0, "updated")
             self._hits += 1
             return TileAnswer(tile.prob, 0.0, "fresh")
         age = _age(tile)
-        if age > MAX_STALE_S:
+        if age > max_age or max_age <= 0:
             return None
         if tile.lock.locked() or tile.refreshing:
+            if patient:
+                return _WAIT
             self._stale += 1
             return TileAnswer(tile.prob, age, "stale")
         load = self._tracers.load()
         if not (load.busy or load.saturated):
-            return None
+            if not patient:
+                return None
+            tile.refreshing = True
+            self._refresher.submit(self._refresh, tile)
+            return _WAIT
         if not load.saturated and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
             self._coalesced += 1
             return TileAnswer(tile.prob, age, "coalesced")

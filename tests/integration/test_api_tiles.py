@@ -62,6 +62,19 @@ def test_every_occupancy_answer_says_how_old_its_state_is(server, messages):
     assert metric(server, 'gmmap_tile_age_seconds_bucket{le="0.0"}') == 3
 
 
+def test_max_age_zero_is_served_every_change_and_a_max_age_out_of_range_is_refused(server, messages):
+    url = f"{server.url}/v1/occupancy?bbox=-8,-12,8,4&resolution=0.1&format=npy"
+    assert get(url)[1]["X-Map-Age"] == "0.000000"
+    server.fleet_map.add_scan(messages[20])
+    (tile,) = server.fleet_map._tiles.values()
+    tile.refreshing = True  # as if an update were queued in the background: max_age=0 does not take its state
+    status, headers, _ = get(url + "&max_age=0")
+    assert status == 200 and headers["X-Map-Age"] == "0.000000"
+    for bad in ("5", "-1", "nan"):
+        status, _, body = get(url + f"&max_age={bad}")
+        assert status in (400, 422) and json.loads(body)["field"] == "max_age", body
+
+
 def test_saturated_tracers_shed_with_503_and_retry_after_then_serve_again(server, monkeypatch):
     cold_grids = [Grid.from_bbox([-8.0, -12.0], [0.0, -4.0], r) for r in (0.2, 0.25, 0.3)]
     url = f"{server.url}/v1/occupancy?bbox=-6,-10,2,-2&resolution=0.15"

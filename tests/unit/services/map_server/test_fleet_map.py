@@ -1,5 +1,7 @@
 """The fleet map: served maps equal offline reconstruction, re-posing, caches, the node index."""
 
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -13,6 +15,7 @@ from protocol import PoseGraphUpdate, ScanMessage
 from services.map_server import nodes, tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import TileCache
+from services.map_server.tracers import TracerPool
 
 GRID = Grid.from_bbox([-8.0, -12.0], [8.0, 4.0], 0.1)
 
@@ -204,6 +207,48 @@ def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted)
         assert fleet.occupancy(GRID) is before and fleet.cache_stats()["stale"] == 1
     after = fleet.occupancy(GRID)  # the next lone request brings it up to date
     assert not np.array_equal(after, before) and np.array_equal(after, offline(scans[:60], models[:60], "r1"))
+
+
+def test_a_patient_request_waits_for_a_slow_update_only_so_long_then_gets_the_previous_state(fitted, monkeypatch):
+    scans, models = fitted
+    fleet = FleetMap("f", trace_threads=1)
+    for s, m in zip(scans[:60:2], models[:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    before = fleet.occupancy(GRID)
+    for s, m in zip(scans[1:60:2], models[1:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    gate, trace_part = threading.Event(), TracerPool._trace_part
+    monkeypatch.setattr(TracerPool, "_trace_part", lambda pool, *a: gate.wait(60) and trace_part(pool, *a))
+    # The update (in the background) waits at the gate: after its patience the request gets the previous state.
+    start = time.monotonic()
+    answer = fleet.occupancy_answer(GRID, patience=0.3)
+    assert answer.prob is before and answer.kind == "stale" and 0 < answer.age <= tiles.MAX_STALE_S
+    assert 0.3 <= time.monotonic() - start < 5
+    gate.set()  # the update goes on; the next patient request waits for it and gets it
+    answer = fleet.occupancy_answer(GRID, patience=30.0)
+    assert answer.kind == "updated" and answer.age == 0.0
+    assert np.array_equal(answer.prob, offline(scans[:60], models[:60], "r1"))
+    assert fleet.occupancy_answer(GRID, patience=30.0).kind == "fresh"
+
+
+def test_max_age_zero_waits_for_every_change_even_with_a_previous_state_and_busy_tracers(fitted):
+    scans, models = fitted
+    fleet = FleetMap("f", trace_threads=1)
+    for s, m in zip(scans[:60:2], models[:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    before = fleet.occupancy(GRID)
+    for s, m in zip(scans[1:60:2], models[1:60:2]):
+        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    (tile,) = fleet._tiles.values()
+    updated = []
+    with tile.lock:  # another request updating it: max_age 0 waits for that one, then updates
+        waiting = threading.Thread(target=lambda: updated.append(fleet.occupancy_answer(GRID, max_age=0.0)))
+        waiting.start()
+        waiting.join(0.5)
+        assert waiting.is_alive() and not updated
+    waiting.join(60)
+    assert updated[0].age == 0.0 and not np.array_equal(updated[0].prob, before)
+    assert np.array_equal(updated[0].prob, offline(scans[:60], models[:60], "r1"))
 
 
 def test_tiles_traced_from_many_threads_at_once_equal_one_at_a_time(fitted):
