@@ -194,14 +194,21 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     assert [grid is GRID for cache, grid in afresh if cache is served._tiles] == [True, False, False]
 
 
-def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted):
+def traced_then_changed(fitted, trace_threads: int = 1) -> tuple[FleetMap, np.ndarray]:
+    """A map of every other of the first 60 scans, its GRID tile traced (returned), then the others added."""
     scans, models = fitted
-    fleet = FleetMap("f")
+    fleet = FleetMap("f", trace_threads=trace_threads)
     for s, m in zip(scans[:60:2], models[:60:2]):
         fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
     before = fleet.occupancy(GRID)
     for s, m in zip(scans[1:60:2], models[1:60:2]):
         fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    return fleet, before
+
+
+def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted):
+    scans, models = fitted
+    fleet, before = traced_then_changed(fitted)
     (tile,) = fleet._tiles.values()
     with tile.lock:  # as if another request were updating it now
         assert fleet.occupancy(GRID) is before and fleet.cache_stats()["stale"] == 1
@@ -211,12 +218,7 @@ def test_a_tile_being_updated_is_served_as_it_was_to_concurrent_requests(fitted)
 
 def test_a_patient_request_waits_for_a_slow_update_only_so_long_then_gets_the_previous_state(fitted, monkeypatch):
     scans, models = fitted
-    fleet = FleetMap("f", trace_threads=1)
-    for s, m in zip(scans[:60:2], models[:60:2]):
-        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
-    before = fleet.occupancy(GRID)
-    for s, m in zip(scans[1:60:2], models[1:60:2]):
-        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    fleet, before = traced_then_changed(fitted)
     gate, trace_part = threading.Event(), TracerPool._trace_part
     monkeypatch.setattr(TracerPool, "_trace_part", lambda pool, *a: gate.wait(60) and trace_part(pool, *a))
     # The update (in the background) waits at the gate: after its patience the request gets the previous state.
@@ -233,12 +235,7 @@ def test_a_patient_request_waits_for_a_slow_update_only_so_long_then_gets_the_pr
 
 def test_max_age_zero_waits_for_every_change_even_with_a_previous_state_and_busy_tracers(fitted):
     scans, models = fitted
-    fleet = FleetMap("f", trace_threads=1)
-    for s, m in zip(scans[:60:2], models[:60:2]):
-        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
-    before = fleet.occupancy(GRID)
-    for s, m in zip(scans[1:60:2], models[1:60:2]):
-        fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, s.pose))
+    fleet, before = traced_then_changed(fitted)
     (tile,) = fleet._tiles.values()
     updated = []
     with tile.lock:  # another request updating it: max_age 0 waits for that one, then updates
