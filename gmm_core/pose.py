@@ -19,6 +19,9 @@ def _determinant(R: np.ndarray) -> float:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
+NEAR_HALF_TURN = 0.25  # 4 w^2 under this (turns over about 150 degrees): Pose.as_quaternion's second branch
+
+
 @dataclass(frozen=True, slots=True)  # a server holds a pose per node for a whole shift
 class Pose:
     """A rigid transform x_world = R @ x_local + t, in 2D or 3D."""
@@ -75,12 +78,23 @@ class Pose:
         if self.dim != 3:
             raise ValueError("as_quaternion: pose is not 3D")
         R = self.R
-        w = np.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-        x = np.copysign(np.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
-        y = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
-        z = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
-        q = np.array([w, x, y, z])
-        return q / np.linalg.norm(q)
+        squares = np.array([1.0 + R[0, 0] + R[1, 1] + R[2, 2], 1.0 + R[0, 0] - R[1, 1] - R[2, 2],
+                            1.0 - R[0, 0] + R[1, 1] - R[2, 2], 1.0 - R[0, 0] - R[1, 1] + R[2, 2]])  # fmt: skip
+        if squares[0] >= NEAR_HALF_TURN:  # 4 w^2: x, y, z take their signs from 4 w (x, y, z)
+            w, x, y, z = np.sqrt(np.maximum(squares, 0.0)) / 2
+            q = np.array([w, np.copysign(x, R[2, 1] - R[1, 2]), np.copysign(y, R[0, 2] - R[2, 0]),
+                          np.copysign(z, R[1, 0] - R[0, 1])])  # fmt: skip
+            return q / np.linalg.norm(q)
+        # Near a half turn those differences vanish: Shepperd's method divides the off-diagonal sums
+        # and differences by the largest of 4 x^2, 4 y^2, 4 z^2 instead.
+        k = int(np.argmax(squares[1:]))  # x, y or z
+        s = 2.0 * np.sqrt(squares[k + 1])  # 4 |q_k|
+        differences = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 4 w (x, y, z)
+        vector = (R + R.T)[k] / s  # 4 q_k (x, y, z) / s off the diagonal
+        vector[k] = s / 4
+        q = np.concatenate([[differences[k] / s], vector])
+        q /= np.linalg.norm(q)
+        return -q if q[0] < 0 else q
 
     def compose(self, other: Pose) -> Pose:
         """self ∘ other: first apply other, then self."""

@@ -117,3 +117,18 @@ def test_displacements_match_a_pose_by_pose_reference_by_scipy(dim):
     got = displacements(t0, R0, t1, R1, reach)
     want = [reference(Pose(a, x), Pose(b, y), r) for a, x, b, y, r in zip(R0, t0, R1, t1, reach)]
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
+def test_as_quaternion_gives_back_the_rotation_also_at_half_turns_about_slanted_axes():
+    """w >= 0 and from_quaternion(as_quaternion) == R: on random rotations, and on half turns (w = 0),
+    where the signs of x, y, z must come from the off-diagonal sums, not the differences (both ~0)."""
+    rng = np.random.default_rng(7)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    quaternions = [rng.normal(size=4) for _ in range(200)] + [np.array([0.0, *a]) for a in axes]
+    quaternions += [np.array([1e-9, *a]) for a in axes[:50]]  # just short of a half turn
+    for q in quaternions:
+        pose = Pose.from_quaternion(rng.normal(size=3), q)
+        back = pose.as_quaternion()
+        assert back[0] >= 0 and abs(np.linalg.norm(back) - 1) < 1e-12
+        np.testing.assert_allclose(Pose.from_quaternion(pose.t, back).R, pose.R, atol=1e-12)
