@@ -101,10 +101,14 @@ class FitConfig:
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:
             return 0
-        k = int(np.ceil(len(points) / self.points_per_component))
+        k = self.n_components_of_count(len(points))
         if self.component_size is not None:
             k = min(k, count_voxels(points, float(self.component_size)))
-        return max(1, min(k, self.max_components))
+        return max(1, k)
+
+    def n_components_of_count(self, n_points: int) -> int:
+        """n_components without the cap of occupied cells (which the voxel fit counts itself)."""
+        return max(1, min(int(np.ceil(n_points / self.points_per_component)), self.max_components))
 
 
 def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitConfig()) -> ScanModel:
@@ -120,12 +124,18 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
     ends = no_return.reshape(-1, dim) * config.max_range
 
     def fit(points: np.ndarray) -> Mixture:
-        k = config.n_components(points)
         if config.voxel_size:
             max_iter = min(config.max_iter, config.voxel_max_iter or DENSE_3D_VOXEL_MAX_ITER)
             return fit_mixture_voxels(
-                points, k, config.voxel_size, reg_covar=config.reg_covar, max_iter=max_iter, tol=config.tol
+                points,
+                config.n_components_of_count(len(points)),
+                config.voxel_size,
+                cell_size=config.component_size,
+                reg_covar=config.reg_covar,
+                max_iter=max_iter,
+                tol=config.tol,
             )
+        k = config.n_components(points)
         return fit_mixture(points, k, reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)
 
     return ScanModel(fit(hits), fit(ends), np.zeros(dim), config.max_range)
