@@ -45,6 +45,8 @@ class ScanModel:
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
 DENSE_3D_VOXEL_MAX_ITER = 8  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15)
+# m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
+DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,7 @@ class FitConfig:
     tol: float = 1e-3  # EM stops when the mean log-likelihood gains less than this, nats per point
     voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 1; None: DENSE_3D_VOXEL_MAX_ITER
+    voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
 
     def __post_init__(self):
         for name in ("points_per_component", "max_range", "reg_covar"):
@@ -87,16 +90,25 @@ class FitConfig:
             require_count(f"fit.{name}", getattr(self, name))
         if self.voxel_max_iter is not None:
             require_count("fit.voxel_max_iter", self.voxel_max_iter)
+        if self.voxel_near_range is not None:
+            require_number("fit.voxel_near_range", self.voxel_near_range, positive=True)
 
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
         component_size = DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size
         voxel_size = (DENSE_3D_VOXEL_SIZE if self.voxel_size is None else self.voxel_size) if dim == 3 else 0.0
         voxel_max_iter = DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter
-        resolved = (component_size, voxel_size, voxel_max_iter)
-        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter):
+        near = DENSE_3D_VOXEL_NEAR_RANGE if self.voxel_near_range is None else self.voxel_near_range
+        resolved = (component_size, voxel_size, voxel_max_iter, near)
+        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter, self.voxel_near_range):
             return self
-        return replace(self, component_size=component_size, voxel_size=voxel_size, voxel_max_iter=voxel_max_iter)
+        return replace(
+            self,
+            component_size=component_size,
+            voxel_size=voxel_size,
+            voxel_max_iter=voxel_max_iter,
+            voxel_near_range=near,
+        )
 
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:
@@ -131,6 +143,7 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
                 config.n_components_of_count(len(points)),
                 config.voxel_size,
                 cell_size=config.component_size,
+                near_range=config.voxel_near_range or DENSE_3D_VOXEL_NEAR_RANGE,
                 reg_covar=config.reg_covar,
                 max_iter=max_iter,
                 tol=config.tol,

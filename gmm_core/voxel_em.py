@@ -28,9 +28,10 @@ from numba import njit
 from gmm_core import em
 from gmm_core.mixture import Mixture
 
-# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^20 voxels from
-# the origin: +-52 km at 5 cm).
-_KEY_BITS = 21
+# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^19 voxels from
+# the origin: +-26 km at 5 cm), and above them one bit for the far voxels of twice the size.
+_KEY_BITS = 20
+_FAR_BIT = 3 * _KEY_BITS
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
 _FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
@@ -54,15 +55,23 @@ _BLOCK_VOXELS_PER_COMPONENT = 2
 
 
 @njit(cache=True, inline="always")
-def _voxel_key(points, i, size):
-    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their range."""
+def _voxel_key(points, i, size, far_squared):
+    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
+    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set."""
+    d = points.shape[1]
+    r2 = 0.0
+    for a in range(d):
+        r2 += points[i, a] * points[i, a]
+    far = r2 > far_squared
+    if far:
+        size = 2.0 * size
     key = 0
-    for a in range(points.shape[1]):
+    for a in range(d):
         c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
         if c < 0 or c >= 2 * _KEY_OFFSET:
-            raise ValueError("voxels: a point lies more than 2^20 voxels from the origin")
+            raise ValueError("voxels: a point lies more than 2^19 voxels from the origin")
         key = (key << _KEY_BITS) + c
-    return key
+    return key + (1 << _FAR_BIT) if far else key
 
 
 @njit(cache=True)
@@ -105,7 +114,7 @@ def count_voxels(points, size):
     table, shift = _hash_table(_FIRST_TABLE_BITS)
     count = 0
     for i in range(points.shape[0]):
-        if _voxel_number(table, shift, _voxel_key(points, i, size), count) == count:
+        if _voxel_number(table, shift, _voxel_key(points, i, size, np.inf), count) == count:
             count += 1
             if 2 * count > table.shape[0]:
                 table, shift = _grown(table, count)
@@ -128,11 +137,13 @@ def _finite_mean(points):
 
 
 @njit(cache=True)
-def _voxel_statistics(points, voxel_size, shift):
-    """Per occupied voxel floor(x / voxel_size), the sums of em._features of x - shift over its
-    points (M, f) and its key (M,), voxels in the order of their first point: one pass, one hash
-    probe per point. The voxels are those of the points' frame; `shift` (near the points) keeps
-    the second moments precise."""
+def _voxel_statistics(points, voxel_size, shift, near_range):
+    """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
+    `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
+    its key (M,), voxels in the order of their first point: one pass, one hash probe per point.
+    The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
+    precise."""
+    far_squared = near_range * near_range
     n, d = points.shape
     table, table_shift = _hash_table(_FIRST_TABLE_BITS)
     sums = np.empty((n, 1 + d + d * (d + 1) // 2))
@@ -140,7 +151,7 @@ def _voxel_statistics(points, voxel_size, shift):
     x = np.empty(d)
     n_voxels = 0
     for i in range(n):
-        key = _voxel_key(points, i, voxel_size)
+        key = _voxel_key(points, i, voxel_size, far_squared)
         v = _voxel_number(table, table_shift, key, n_voxels)
         if v == n_voxels:
             sums[v] = 0.0
@@ -162,18 +173,20 @@ def _voxel_statistics(points, voxel_size, shift):
 
 @njit(cache=True)
 def _count_cells(keys, d, ratio):
-    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes) hold one of
-    the voxels `keys`: count_voxels(points, ratio * voxel_size) from the voxels, not the points
+    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes; `ratio`
+    even where far voxels of twice the size are among them) hold one of the voxels `keys`:
+    count_voxels(points, ratio * voxel_size) from the voxels, not the points
     (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
     of two, as 4 and 0.25 m)."""
     table, shift = _hash_table(_FIRST_TABLE_BITS)
     mask = (1 << _KEY_BITS) - 1
     count = 0
     for v in range(keys.shape[0]):
+        per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
         cell = 0
         for a in range(d):
             c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask
-            cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // ratio + _KEY_OFFSET
+            cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // per_cell + _KEY_OFFSET
         if _voxel_number(table, shift, cell, count) == count:
             count += 1
             if 2 * count > table.shape[0]:
@@ -512,6 +525,7 @@ def fit_mixture_voxels(
     voxel_size: float,
     *,
     cell_size: float | None = None,
+    near_range: float = np.inf,
     reg_covar: float = 1e-4,
     max_iter: int = 100,
     tol: float = 1e-3,
@@ -520,7 +534,9 @@ def fit_mixture_voxels(
     of voxels of size `voxel_size` (m) from a top-down split; `reg_covar`, `max_iter` and `tol`
     as in em.fit_mixture (tol bounds the change of the bound per point). With `cell_size` (m),
     also at most one component per occupied cell of that size (count_voxels(points, cell_size)),
-    counted from the voxels when it is a whole number of voxels.
+    counted from the voxels when it is a whole number of voxels. Points farther than `near_range`
+    (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
+    size: there the scan's rings lie farther apart than a voxel, so a voxel holds few points.
 
     Deterministic: no seed. Fewer components come back when fewer groups can be cut than asked
     (voxels are never cut: the voxels must be much smaller than the components).
@@ -532,11 +548,13 @@ def fit_mixture_voxels(
     if n == 0:
         return Mixture.empty(d)
     shift = _finite_mean(points)
-    sums, keys = _voxel_statistics(points, float(voxel_size), shift)
+    sums, keys = _voxel_statistics(points, float(voxel_size), shift, float(near_range))
     k = int(min(max(n_components, 1), n))
     if cell_size is not None:
         ratio = float(cell_size) / float(voxel_size)
-        whole = round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9
+        whole = (
+            round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9 and (round(ratio) % 2 == 0 or near_range == np.inf)
+        )
         k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
     means, scatter = _means_and_scatter(sums)
     group_sums = _split_groups(means, sums, k)
