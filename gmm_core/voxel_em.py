@@ -402,20 +402,20 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
     """
     k_count = packed.shape[0]
     n_top = kept.shape[1]
-    everyone = np.arange(k_count)
     log_p = np.empty(n_top)
     stats[:] = 0.0
     bound = 0.0
-    c = -1
-    comps = everyone
     for i in range(lo_i, hi_i):
         if search:
-            if voxel_cell[i] != c:
-                c = voxel_cell[i]
-                comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
+            c = voxel_cell[i]
+            first, last = start[c], start[c + 1]
+            listed = last > first
+            if not listed:
+                first, last = 0, k_count
             count = 0
-            for j in range(comps.shape[0]):
-                s = _score(packed, comps[j], means, scatter, i)
+            for j in range(first, last):
+                k = items[j] if listed else j
+                s = _score(packed, k, means, scatter, i)
                 if count == n_top and s <= log_p[n_top - 1]:
                     continue
                 at = min(count, n_top - 1)  # insertion into the sorted top list
@@ -424,7 +424,7 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
                     kept[i, at] = kept[i, at - 1]
                     at -= 1
                 log_p[at] = s
-                kept[i, at] = comps[j]
+                kept[i, at] = k
                 count = min(count + 1, n_top)
             while count > 1 and log_p[count - 1] < log_p[0] + em._LOG_RESP_FLOOR:
                 count -= 1  # a responsibility below e^-20 of the largest would add nothing in later passes
