@@ -44,7 +44,7 @@ class ScanModel:
 
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
-DENSE_3D_VOXEL_MAX_ITER = 8  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15)
+DENSE_3D_VOXEL_MAX_ITER = 10  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15 part 3)
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 

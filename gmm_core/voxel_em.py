@@ -39,15 +39,14 @@ _N_FEATURES = 10  # [1, x, upper triangle of x x^T] of a 3D point (em._features)
 # Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
 _AXIS_ITERATIONS = 8
 # Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
-# found by a search of the components whose box of this many sigmas reaches the voxel's hash cell
-# on these passes (1-based; the first pass always searches). Mean log-likelihood per point on
-# three BALM scans after 8 passes: untruncated EM on the voxels (before issue 15's second part)
-# -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1 and 3: -2.514; on 1 only: -2.552,
-# and -2.520 when keeping 8 components instead of 4. A search pass costs about three passes over
-# the kept components (docs/BENCHMARKS.md, issue 15 part 2).
+# found on the first pass by a search of the components whose box of this many sigmas reaches the
+# voxel's hash cell. Mean log-likelihood per point on three BALM scans after 8 passes (issue 15
+# part 2): untruncated EM on the voxels -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1
+# and 3: -2.514; on 1 only: -2.552, and -2.520 when keeping 8 components instead of 4. A search
+# pass costs about three passes over the kept components, so one search and 10 passes beat two
+# searches and 8 passes on every measure (docs/BENCHMARKS.md, issue 15 part 3).
 _KEPT_COMPONENTS = 4
 _SEARCH_BOX_SIGMAS = 3.0
-_SEARCH_PASSES = (1, 3)
 # Hash grid and blocks of the voxel EM: as em._refine's for points, with more cells (voxels are
 # sparse in the box of a scan) and smaller blocks (a voxel stands for several points).
 _CELLS_PER_VOXEL = 8
@@ -457,12 +456,11 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     """Truncated incremental EM on voxels in place, at most `max_iter` passes, until the bound per
     point changes by less than `tol`; returns (passes, bound per point).
 
-    Passes _SEARCH_PASSES search each voxel's candidates (the components whose
-    _SEARCH_BOX_SIGMAS box reaches its hash cell) and keep its `n_kept` most likely; the other
-    passes score only those. Such a pass is an exact E-step for responsibilities restricted to
-    the kept components, so, as a full E-step, it does not lower a bound on the log-likelihood
-    (truncated EM, Luecke & Eggert 2010; a search may drop a kept component whose box no longer
-    reaches the voxel), and it costs a few scores per voxel instead of about ten.
+    The first pass searches each voxel's candidates (the components whose _SEARCH_BOX_SIGMAS box
+    reaches its hash cell) and keeps its `n_kept` most likely; the other passes score only those.
+    Such a pass is an exact E-step for responsibilities restricted to the kept components, so, as
+    a full E-step, it does not lower a bound on the log-likelihood (truncated EM, Luecke & Eggert
+    2010), and it costs a few scores per voxel instead of about ten.
     The schedule is em._refine's: voxel i in block i mod B, the M-step after every block from
     the second pass on (Neal & Hinton 1998).
     """
@@ -484,10 +482,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     passes = 0
     while passes < max_iter:
         passes += 1
-        search = passes == 1 or passes in _SEARCH_PASSES
-        if search and passes > 1:  # boxes of the parameters at the start of the pass: candidates need not be exact
-            em._m_step(total, reg_covar, weights, mu, covs)
-            start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+        search = passes == 1
         bound = 0.0
         for b in range(n_blocks):
             lo_i, hi_i = (b * m) // n_blocks, ((b + 1) * m) // n_blocks
