@@ -437,7 +437,8 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
             best = max(best, log_p[j])
         norm = 0.0
         for j in range(count):
-            log_p[j] = np.exp(log_p[j] - best) if log_p[j] - best > em._LOG_RESP_FLOOR else 0.0
+            gap = log_p[j] - best
+            log_p[j] = 1.0 if gap == 0.0 else (np.exp(gap) if gap > em._LOG_RESP_FLOOR else 0.0)  # exp(0) = 1, no call
             norm += log_p[j]
         inverse = 1.0 / norm
         for j in range(count):
