@@ -213,6 +213,13 @@ def main() -> None:
             f"| {ratio[:, 0].min():.1f}x ({ratio[:, 1].min():.1f}x) | {t['q_bytes'].mean():,.0f} "
             f"| {t['xyz_bytes'].mean():,.0f} | {100 * t['q_bytes'].sum() / t['xyz_bytes'].sum():.2f} % |"
         )
+    for name, t in times.items():
+        ratio = t["insert"][:, 1] / t["fit"][:, 1]
+        w = int(ratio.argmin())
+        print(
+            f"{name}: worst scan #{w} ({t['points'][w]:,} points, {t['components'][w]} components): fit "
+            f"{1e3 * t['fit'][w, 1]:.1f} ms CPU, OctoMap {1e3 * t['insert'][w, 1]:.0f} ms CPU, {ratio[w]:.1f}x"
+        )
     if quality:
         print("\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | cells scored |")
         print("|---|---|---|---|---|---|")
