@@ -60,7 +60,9 @@ class FitConfig:
     `max_components`, which bounds the message size. `for_dimension` resolves the defaults that
     depend on the scan: `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in
     3D; `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
-    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`.
+    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`, and
+    `voxel_near_range` None `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that range from the sensor the
+    voxels are twice `voxel_size`, where a lidar's rings lie farther apart than a voxel.
 
     With `voxel_size` > 0, EM runs on the summed statistics of the points of each voxel of that
     size, from a top-down split (gmm_core.voxel_em), at most `voxel_max_iter` passes: a 3D scan
