@@ -44,7 +44,9 @@ class ScanModel:
 
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
-DENSE_3D_VOXEL_MAX_ITER = 8  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15)
+DENSE_3D_VOXEL_MAX_ITER = 10  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15 part 3)
+# m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
+DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,9 @@ class FitConfig:
     `max_components`, which bounds the message size. `for_dimension` resolves the defaults that
     depend on the scan: `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in
     3D; `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
-    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`.
+    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`, and
+    `voxel_near_range` None `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that range from the sensor the
+    voxels are twice `voxel_size`, where a lidar's rings lie farther apart than a voxel.
 
     With `voxel_size` > 0, EM runs on the summed statistics of the points of each voxel of that
     size, from a top-down split (gmm_core.voxel_em), at most `voxel_max_iter` passes: a 3D scan
@@ -74,6 +78,7 @@ class FitConfig:
     tol: float = 1e-3  # EM stops when the mean log-likelihood gains less than this, nats per point
     voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 1; None: DENSE_3D_VOXEL_MAX_ITER
+    voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
 
     def __post_init__(self):
         for name in ("points_per_component", "max_range", "reg_covar"):
@@ -87,24 +92,37 @@ class FitConfig:
             require_count(f"fit.{name}", getattr(self, name))
         if self.voxel_max_iter is not None:
             require_count("fit.voxel_max_iter", self.voxel_max_iter)
+        if self.voxel_near_range is not None:
+            require_number("fit.voxel_near_range", self.voxel_near_range, positive=True)
 
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
         component_size = DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size
         voxel_size = (DENSE_3D_VOXEL_SIZE if self.voxel_size is None else self.voxel_size) if dim == 3 else 0.0
         voxel_max_iter = DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter
-        resolved = (component_size, voxel_size, voxel_max_iter)
-        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter):
+        near = DENSE_3D_VOXEL_NEAR_RANGE if self.voxel_near_range is None else self.voxel_near_range
+        resolved = (component_size, voxel_size, voxel_max_iter, near)
+        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter, self.voxel_near_range):
             return self
-        return replace(self, component_size=component_size, voxel_size=voxel_size, voxel_max_iter=voxel_max_iter)
+        return replace(
+            self,
+            component_size=component_size,
+            voxel_size=voxel_size,
+            voxel_max_iter=voxel_max_iter,
+            voxel_near_range=near,
+        )
 
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:
             return 0
-        k = int(np.ceil(len(points) / self.points_per_component))
+        k = self.n_components_of_count(len(points))
         if self.component_size is not None:
             k = min(k, count_voxels(points, float(self.component_size)))
-        return max(1, min(k, self.max_components))
+        return max(1, k)
+
+    def n_components_of_count(self, n_points: int) -> int:
+        """n_components without the cap of occupied cells (which the voxel fit counts itself)."""
+        return max(1, min(int(np.ceil(n_points / self.points_per_component)), self.max_components))
 
 
 def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitConfig()) -> ScanModel:
@@ -120,12 +138,19 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
     ends = no_return.reshape(-1, dim) * config.max_range
 
     def fit(points: np.ndarray) -> Mixture:
-        k = config.n_components(points)
         if config.voxel_size:
             max_iter = min(config.max_iter, config.voxel_max_iter or DENSE_3D_VOXEL_MAX_ITER)
             return fit_mixture_voxels(
-                points, k, config.voxel_size, reg_covar=config.reg_covar, max_iter=max_iter, tol=config.tol
+                points,
+                config.n_components_of_count(len(points)),
+                config.voxel_size,
+                cell_size=config.component_size,
+                near_range=config.voxel_near_range or DENSE_3D_VOXEL_NEAR_RANGE,
+                reg_covar=config.reg_covar,
+                max_iter=max_iter,
+                tol=config.tol,
             )
+        k = config.n_components(points)
         return fit_mixture(points, k, reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)
 
     return ScanModel(fit(hits), fit(ends), np.zeros(dim), config.max_range)

@@ -28,9 +28,10 @@ from numba import njit
 from gmm_core import em
 from gmm_core.mixture import Mixture
 
-# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^20 voxels from
-# the origin: +-52 km at 5 cm).
-_KEY_BITS = 21
+# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^19 voxels from
+# the origin: +-26 km at 5 cm), and above them one bit for the far voxels of twice the size.
+_KEY_BITS = 20
+_FAR_BIT = 3 * _KEY_BITS
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
 _FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
@@ -38,15 +39,14 @@ _N_FEATURES = 10  # [1, x, upper triangle of x x^T] of a 3D point (em._features)
 # Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
 _AXIS_ITERATIONS = 8
 # Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
-# found by a search of the components whose box of this many sigmas reaches the voxel's hash cell
-# on these passes (1-based; the first pass always searches). Mean log-likelihood per point on
-# three BALM scans after 8 passes: untruncated EM on the voxels (before issue 15's second part)
-# -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1 and 3: -2.514; on 1 only: -2.552,
-# and -2.520 when keeping 8 components instead of 4. A search pass costs about three passes over
-# the kept components (docs/BENCHMARKS.md, issue 15 part 2).
+# found on the first pass by a search of the components whose box of this many sigmas reaches the
+# voxel's hash cell. Mean log-likelihood per point on three BALM scans after 8 passes (issue 15
+# part 2): untruncated EM on the voxels -2.484; searching on passes 1, 2, 4 and 8: -2.496; on 1
+# and 3: -2.514; on 1 only: -2.552, and -2.520 when keeping 8 components instead of 4. A search
+# pass costs about three passes over the kept components, so one search and 10 passes beat two
+# searches and 8 passes on every measure (docs/BENCHMARKS.md, issue 15 part 3).
 _KEPT_COMPONENTS = 4
 _SEARCH_BOX_SIGMAS = 3.0
-_SEARCH_PASSES = (1, 3)
 # Hash grid and blocks of the voxel EM: as em._refine's for points, with more cells (voxels are
 # sparse in the box of a scan) and smaller blocks (a voxel stands for several points).
 _CELLS_PER_VOXEL = 8
@@ -54,15 +54,23 @@ _BLOCK_VOXELS_PER_COMPONENT = 2
 
 
 @njit(cache=True, inline="always")
-def _voxel_key(points, i, size):
-    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their range."""
+def _voxel_key(points, i, size, far_squared):
+    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
+    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set."""
+    d = points.shape[1]
+    r2 = 0.0
+    for a in range(d):
+        r2 += points[i, a] * points[i, a]
+    far = r2 > far_squared
+    if far:
+        size = 2.0 * size
     key = 0
-    for a in range(points.shape[1]):
+    for a in range(d):
         c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
         if c < 0 or c >= 2 * _KEY_OFFSET:
-            raise ValueError("voxels: a point lies more than 2^20 voxels from the origin")
+            raise ValueError("voxels: a point lies more than 2^19 voxels from the origin")
         key = (key << _KEY_BITS) + c
-    return key
+    return key + (1 << _FAR_BIT) if far else key
 
 
 @njit(cache=True)
@@ -105,7 +113,7 @@ def count_voxels(points, size):
     table, shift = _hash_table(_FIRST_TABLE_BITS)
     count = 0
     for i in range(points.shape[0]):
-        if _voxel_number(table, shift, _voxel_key(points, i, size), count) == count:
+        if _voxel_number(table, shift, _voxel_key(points, i, size, np.inf), count) == count:
             count += 1
             if 2 * count > table.shape[0]:
                 table, shift = _grown(table, count)
@@ -113,28 +121,76 @@ def count_voxels(points, size):
 
 
 @njit(cache=True)
-def _voxel_statistics(points, voxel_size):
-    """Per occupied voxel floor(x / voxel_size), the sums of em._features over its points (M, f),
-    voxels in the order of their first point: one pass, one hash probe per point."""
+def _finite_mean(points):
+    """The mean of the (n, d) points; ValueError if one is NaN or inf (em.checked_points' check:
+    a NaN or inf makes its axis' sum one, and so does a sum beyond the float range)."""
     n, d = points.shape
-    table, shift = _hash_table(_FIRST_TABLE_BITS)
+    mean = np.zeros(d)
+    for i in range(n):
+        for a in range(d):
+            mean[a] += points[i, a]
+    for a in range(d):
+        if not np.isfinite(mean[a]):
+            raise ValueError("fit_mixture_voxels: points contain NaN or inf")
+    return mean / max(n, 1)
+
+
+@njit(cache=True)
+def _voxel_statistics(points, voxel_size, shift, near_range):
+    """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
+    `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
+    its key (M,), voxels in the order of their first point: one pass, one hash probe per point.
+    The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
+    precise."""
+    far_squared = near_range * near_range
+    n, d = points.shape
+    table, table_shift = _hash_table(_FIRST_TABLE_BITS)
     sums = np.empty((n, 1 + d + d * (d + 1) // 2))
+    keys = np.empty(n, dtype=np.int64)
+    x = np.empty(d)
     n_voxels = 0
     for i in range(n):
-        v = _voxel_number(table, shift, _voxel_key(points, i, voxel_size), n_voxels)
+        key = _voxel_key(points, i, voxel_size, far_squared)
+        v = _voxel_number(table, table_shift, key, n_voxels)
         if v == n_voxels:
             sums[v] = 0.0
+            keys[v] = key
             n_voxels += 1
             if 2 * n_voxels > table.shape[0]:
-                table, shift = _grown(table, n_voxels)
+                table, table_shift = _grown(table, n_voxels)
+        for a in range(d):
+            x[a] = points[i, a] - shift[a]
         sums[v, 0] += 1.0
         j = 1 + d
         for a in range(d):
-            sums[v, 1 + a] += points[i, a]
+            sums[v, 1 + a] += x[a]
             for b in range(a, d):
-                sums[v, j] += points[i, a] * points[i, b]
+                sums[v, j] += x[a] * x[b]
                 j += 1
-    return sums[:n_voxels].copy()
+    return sums[:n_voxels].copy(), keys[:n_voxels].copy()
+
+
+@njit(cache=True)
+def _count_cells(keys, d, ratio):
+    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes; `ratio`
+    even where far voxels of twice the size are among them) hold one of the voxels `keys`:
+    count_voxels(points, ratio * voxel_size) from the voxels, not the points
+    (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
+    of two, as 4 and 0.25 m)."""
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
+    mask = (1 << _KEY_BITS) - 1
+    count = 0
+    for v in range(keys.shape[0]):
+        per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
+        cell = 0
+        for a in range(d):
+            c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask
+            cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // per_cell + _KEY_OFFSET
+        if _voxel_number(table, shift, cell, count) == count:
+            count += 1
+            if 2 * count > table.shape[0]:
+                table, shift = _grown(table, count)
+    return count
 
 
 @njit(cache=True)
@@ -251,35 +307,64 @@ def _split_groups(means, sums, n_groups):
     return group_sums[:count].copy()
 
 
+@njit(cache=True, inline="always")
+def _pack_row(row, w, m0, m1, m2, c00, c10, c11, c20, c21, c22):
+    """One component (weight w, mean m, covariance c by its lower triangle) as a row of 16 (see
+    _pack_components); the 3x3 Cholesky factor and its inverse written out, no scratch arrays."""
+    l00 = np.sqrt(c00)
+    l10 = c10 / l00
+    l20 = c20 / l00
+    l11 = np.sqrt(c11 - l10 * l10)
+    l21 = (c21 - l20 * l10) / l11
+    l22 = np.sqrt(c22 - l20 * l20 - l21 * l21)
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    i10 = -l10 * i00 * i11
+    i21 = -l21 * i11 * i22
+    i20 = -(l20 * i00 + l21 * i10) * i22
+    row[0], row[1], row[2] = m0, m1, m2
+    row[3], row[4], row[5], row[6], row[7], row[8] = i00, i10, i11, i20, i21, i22
+    row[9] = i00 * i00 + i10 * i10 + i20 * i20
+    row[10] = 2.0 * (i10 * i11 + i20 * i21)
+    row[11] = 2.0 * i20 * i22
+    row[12] = i11 * i11 + i21 * i21
+    row[13] = 2.0 * i21 * i22
+    row[14] = i22 * i22
+    row[15] = np.log(w / (l00 * l11 * l22)) - 1.5 * em._LOG_2PI  # one log: log pi - log det(L)
+
+
 @njit(cache=True)
 def _pack_components(weights, mu, covs, packed):
     """Each 3D component as one row of `packed` (K, 16), what _score reads: mu (3), L^-1 of
     Sigma = L L^T (lower triangle by rows: 00, 10, 11, 20, 21, 22), Sigma^-1 = L^-T L^-1 (upper
     triangle by rows, off-diagonal entries doubled: 00, 01, 02, 11, 12, 22) and
     log pi - log det(2 pi Sigma) / 2. One contiguous row per component keeps a score within two
-    cache lines; the 3x3 Cholesky factor and its inverse are written out (no scratch arrays)."""
+    cache lines."""
     for k in range(weights.shape[0]):
         c = covs[k]
-        l00 = np.sqrt(c[0, 0])
-        l10 = c[1, 0] / l00
-        l20 = c[2, 0] / l00
-        l11 = np.sqrt(c[1, 1] - l10 * l10)
-        l21 = (c[2, 1] - l20 * l10) / l11
-        l22 = np.sqrt(c[2, 2] - l20 * l20 - l21 * l21)
-        i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-        i10 = -l10 * i00 * i11
-        i21 = -l21 * i11 * i22
-        i20 = -(l20 * i00 + l21 * i10) * i22
-        row = packed[k]
-        row[0], row[1], row[2] = mu[k, 0], mu[k, 1], mu[k, 2]
-        row[3], row[4], row[5], row[6], row[7], row[8] = i00, i10, i11, i20, i21, i22
-        row[9] = i00 * i00 + i10 * i10 + i20 * i20
-        row[10] = 2.0 * (i10 * i11 + i20 * i21)
-        row[11] = 2.0 * i20 * i22
-        row[12] = i11 * i11 + i21 * i21
-        row[13] = 2.0 * i21 * i22
-        row[14] = i22 * i22
-        row[15] = np.log(weights[k]) - np.log(l00 * l11 * l22) - 1.5 * em._LOG_2PI
+        _pack_row(
+            packed[k], weights[k], mu[k, 0], mu[k, 1], mu[k, 2], c[0, 0], c[1, 0], c[1, 1], c[2, 0], c[2, 1], c[2, 2]
+        )
+
+
+@njit(cache=True)
+def _m_step_packed(stats, reg_covar, packed):
+    """em._m_step of the summed statistics (K, 10) straight into packed rows (_pack_components'):
+    the M-step the E-steps between searches need, without writing and reading the parameters."""
+    total = 0.0
+    for k in range(stats.shape[0]):
+        total += stats[k, 0]
+    for k in range(stats.shape[0]):
+        s = stats[k]
+        inverse = 1.0 / max(s[0], 1e-300)
+        m0, m1, m2 = s[1] * inverse, s[2] * inverse, s[3] * inverse
+        # Features' upper triangle: 4: 00, 5: 01, 6: 02, 7: 11, 8: 12, 9: 22 (em._features).
+        c00 = max(s[4] * inverse - m0 * m0, 0.0) + reg_covar
+        c11 = max(s[7] * inverse - m1 * m1, 0.0) + reg_covar
+        c22 = max(s[9] * inverse - m2 * m2, 0.0) + reg_covar
+        c10 = s[5] * inverse - m0 * m1
+        c20 = s[6] * inverse - m0 * m2
+        c21 = s[8] * inverse - m1 * m2
+        _pack_row(packed[k], s[0] / total, m0, m1, m2, c00, c10, c11, c20, c21, c22)
 
 
 @njit(cache=True, inline="always")
@@ -316,20 +401,20 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
     """
     k_count = packed.shape[0]
     n_top = kept.shape[1]
-    everyone = np.arange(k_count)
     log_p = np.empty(n_top)
     stats[:] = 0.0
     bound = 0.0
-    c = -1
-    comps = everyone
     for i in range(lo_i, hi_i):
         if search:
-            if voxel_cell[i] != c:
-                c = voxel_cell[i]
-                comps = items[start[c] : start[c + 1]] if start[c + 1] > start[c] else everyone
+            c = voxel_cell[i]
+            first, last = start[c], start[c + 1]
+            listed = last > first
+            if not listed:
+                first, last = 0, k_count
             count = 0
-            for j in range(comps.shape[0]):
-                s = _score(packed, comps[j], means, scatter, i)
+            for j in range(first, last):
+                k = items[j] if listed else j
+                s = _score(packed, k, means, scatter, i)
                 if count == n_top and s <= log_p[n_top - 1]:
                     continue
                 at = min(count, n_top - 1)  # insertion into the sorted top list
@@ -338,7 +423,7 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
                     kept[i, at] = kept[i, at - 1]
                     at -= 1
                 log_p[at] = s
-                kept[i, at] = comps[j]
+                kept[i, at] = k
                 count = min(count + 1, n_top)
             while count > 1 and log_p[count - 1] < log_p[0] + em._LOG_RESP_FLOOR:
                 count -= 1  # a responsibility below e^-20 of the largest would add nothing in later passes
@@ -352,7 +437,8 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
             best = max(best, log_p[j])
         norm = 0.0
         for j in range(count):
-            log_p[j] = np.exp(log_p[j] - best) if log_p[j] - best > em._LOG_RESP_FLOOR else 0.0
+            gap = log_p[j] - best
+            log_p[j] = 1.0 if gap == 0.0 else (np.exp(gap) if gap > em._LOG_RESP_FLOOR else 0.0)  # exp(0) = 1, no call
             norm += log_p[j]
         inverse = 1.0 / norm
         for j in range(count):
@@ -371,12 +457,11 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     """Truncated incremental EM on voxels in place, at most `max_iter` passes, until the bound per
     point changes by less than `tol`; returns (passes, bound per point).
 
-    Passes _SEARCH_PASSES search each voxel's candidates (the components whose
-    _SEARCH_BOX_SIGMAS box reaches its hash cell) and keep its `n_kept` most likely; the other
-    passes score only those. Such a pass is an exact E-step for responsibilities restricted to
-    the kept components, so, as a full E-step, it does not lower a bound on the log-likelihood
-    (truncated EM, Luecke & Eggert 2010; a search may drop a kept component whose box no longer
-    reaches the voxel), and it costs a few scores per voxel instead of about ten.
+    The first pass searches each voxel's candidates (the components whose _SEARCH_BOX_SIGMAS box
+    reaches its hash cell) and keeps its `n_kept` most likely; the other passes score only those.
+    Such a pass is an exact E-step for responsibilities restricted to the kept components, so, as
+    a full E-step, it does not lower a bound on the log-likelihood (truncated EM, Luecke & Eggert
+    2010), and it costs a few scores per voxel instead of about ten.
     The schedule is em._refine's: voxel i in block i mod B, the M-step after every block from
     the second pass on (Neal & Hinton 1998).
     """
@@ -393,18 +478,15 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     kept = np.empty((m, n_kept), dtype=np.int64)
     n_kept_of = np.zeros(m, dtype=np.int64)
     start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+    _pack_components(weights, mu, covs, packed)
     previous = -np.inf
     passes = 0
     while passes < max_iter:
         passes += 1
-        search = passes == 1 or passes in _SEARCH_PASSES
-        if search and passes > 1:  # boxes of the parameters at the start of the pass: candidates need not be exact
-            start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+        search = passes == 1
         bound = 0.0
         for b in range(n_blocks):
             lo_i, hi_i = (b * m) // n_blocks, ((b + 1) * m) // n_blocks
-            if passes > 1 or b == 0:
-                _pack_components(weights, mu, covs, packed)
             bound += _e_step_block(
                 means,
                 sums,
@@ -424,11 +506,12 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
                 total[:] = 0.0  # the blocks' sums, without numpy's temporary
                 for c in range(n_blocks):
                     total += block_stats[c]
-                em._m_step(total, reg_covar, weights, mu, covs)
+                _m_step_packed(total, reg_covar, packed)
         bound /= total_weight
         if abs(bound - previous) < tol:
             break
         previous = bound
+    em._m_step(total, reg_covar, weights, mu, covs)
     return passes, bound
 
 
@@ -437,27 +520,40 @@ def fit_mixture_voxels(
     n_components: int,
     voxel_size: float,
     *,
+    cell_size: float | None = None,
+    near_range: float = np.inf,
     reg_covar: float = 1e-4,
     max_iter: int = 100,
     tol: float = 1e-3,
 ) -> Mixture:
     """A mixture of at most `n_components` Gaussians for (n, 3) points, by EM on the statistics
     of voxels of size `voxel_size` (m) from a top-down split; `reg_covar`, `max_iter` and `tol`
-    as in em.fit_mixture (tol bounds the change of the bound per point).
+    as in em.fit_mixture (tol bounds the change of the bound per point). With `cell_size` (m),
+    also at most one component per occupied cell of that size (count_voxels(points, cell_size)),
+    counted from the voxels when it is a whole number of voxels. Points farther than `near_range`
+    (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
+    size: there the scan's rings lie farther apart than a voxel, so a voxel holds few points.
 
     Deterministic: no seed. Fewer components come back when fewer groups can be cut than asked
     (voxels are never cut: the voxels must be much smaller than the components).
     """
-    points = em.checked_points(points, "fit_mixture_voxels")
-    n, d = points.shape
-    if d != 3:
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"fit_mixture_voxels: points must be (n, 3), got {points.shape}")
+    n, d = points.shape
     if n == 0:
         return Mixture.empty(d)
-    shift = points.mean(axis=0)
-    sums = _voxel_statistics(points - shift, float(voxel_size))
+    shift = _finite_mean(points)
+    sums, keys = _voxel_statistics(points, float(voxel_size), shift, float(near_range))
+    k = int(min(max(n_components, 1), n))
+    if cell_size is not None:
+        ratio = float(cell_size) / float(voxel_size)
+        whole = (
+            round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9 and (round(ratio) % 2 == 0 or near_range == np.inf)
+        )
+        k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
     means, scatter = _means_and_scatter(sums)
-    group_sums = _split_groups(means, sums, int(min(max(n_components, 1), n)))
+    group_sums = _split_groups(means, sums, k)
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)
