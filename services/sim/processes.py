@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import signal
 import socket
@@ -24,13 +25,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def die_with_parent() -> None:
+def die_with_parent(parent: int) -> None:
     """In a child (before exec, or first thing in a spawned process): SIGTERM when the parent dies,
     even by SIGKILL (Linux PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no
-    server tracing on and no tile client asking a server that is gone."""
+    server tracing on and no tile client asking a server that is gone. `parent`: the pid that
+    started the child; one that died before the request took hold (a child scheduled late under
+    load) is never signalled for, so the child ends at once."""
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), signal.SIGTERM)
 
 
 PR_SET_PDEATHSIG = 1
@@ -84,7 +89,7 @@ class Processes:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
-                preexec_fn=die_with_parent,
+                preexec_fn=functools.partial(die_with_parent, os.getpid()),
             )
         self.running[name] = proc
         return proc

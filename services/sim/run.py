@@ -93,7 +93,7 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
     """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set, as a viewer
     does: a shed request (503) waits its Retry-After (at most SHED_WAIT_S) before the next. Puts
     ((asked, latency, X-Map-Age) of the answered requests, failures by kind) on `results`."""
-    die_with_parent()
+    die_with_parent(multiprocessing.parent_process().pid)
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:

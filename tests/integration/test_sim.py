@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -246,6 +247,21 @@ def alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_child_whose_parent_died_before_it_asked_to_die_with_it_ends_at_once():
+    """The window PR_SET_PDEATHSIG leaves open: a parent killed between the fork and the child's
+    prctl is never signalled for, so the child compares its parent with the pid that started it."""
+    code = "from services.sim.processes import die_with_parent; import time; die_with_parent({}); time.sleep(30)"
+    gone = subprocess.run([sys.executable, "-c", code.format(1)], env=ENV, timeout=60)  # its parent is not pid 1
+    assert gone.returncode == -signal.SIGTERM
+    kept = subprocess.Popen([sys.executable, "-c", code.format("__import__('os').getppid()")], env=ENV)
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):
+            kept.wait(timeout=3)  # its parent (this test) lives: it runs on
+    finally:
+        kept.kill()
+        kept.wait()
+
+
 def command_line(pid: int) -> str:
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as f:
@@ -254,6 +270,7 @@ def command_line(pid: int) -> str:
         return "?"
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_a_sim_killed_with_sigkill_leaves_no_process_behind(tmp_path):
     sim = subprocess.Popen(
         [*GMMAP, "sim", "--robots", "2", "--duration", "120", "--rate", "2"],
