@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import signal
 import sys
-import threading
 
 import zenoh
 
+from services.stopping import StopSignal
 from services.zenoh_config import zenoh_config
 
 
 def run_router(listen: list[str], connect: list[str] = (), config_file: str | None = None) -> int:
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = StopSignal()
     session = zenoh.open(zenoh_config("router", listen=listen, connect=connect, config_file=config_file))
     print(f"gmmap router ready: {session.zid()} listening on {','.join(listen)}", file=sys.stderr, flush=True)
     stop.wait()

@@ -8,8 +8,6 @@ the HTTP server, undeclare the Zenoh entities, drain the ingest queue and close 
 from __future__ import annotations
 
 import logging
-import os
-import signal
 import ssl
 import sys
 import threading
@@ -37,6 +35,7 @@ from services.api import params  # one set of limits for both APIs
 from services.config import summary
 from services.host import release_free_memory
 from services.ros2.config import Ros2Config
+from services.stopping import StopSignal
 from services.zenoh_config import zenoh_config
 
 from .config import ServerConfig, split_address
@@ -194,11 +193,6 @@ def http_banner(options: ServerConfig, tokens) -> str:
     return f"{scheme}://{options.http} ({who})"
 
 
-def _exit_unstopped() -> None:
-    print(f"gmmap server: not stopped {STOP_DEADLINE_S:g} s after the signal; exiting", file=sys.stderr, flush=True)
-    os._exit(1)
-
-
 def run_server(
     options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig(), ros2: Ros2Config | None = None
 ) -> int:
@@ -214,17 +208,8 @@ def run_server(
     exposure = options.http_exposure()
     if exposure:
         print(f"gmmap server: WARNING {exposure}", file=sys.stderr, flush=True)
-    stop = threading.Event()
-
-    def stop_soon(*_) -> None:
-        if not stop.is_set():  # a stop that hangs (a slow start, a peer gone mid-close) still ends the process
-            watchdog = threading.Timer(STOP_DEADLINE_S, _exit_unstopped)
-            watchdog.daemon = True
-            watchdog.start()
-        stop.set()
-
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, stop_soon)
+    stop = StopSignal()
+    stop.exit_if_stuck(STOP_DEADLINE_S, "gmmap server")
 
     store = Store(options.data_dir, synchronous=options.synchronous)
     fleet_map = FleetMap(

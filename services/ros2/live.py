@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import signal
 import sys
 import threading
 from collections import Counter, deque
@@ -47,6 +46,7 @@ from services.datasets.ros_messages import (
     point_cloud_xyz,
     stamp_seconds,
 )
+from services.stopping import StopSignal
 from services.zenoh_config import zenoh_config
 
 from . import wire
@@ -166,7 +166,7 @@ class LiveSource:
         self._inbox.put((role, str(sample.key_expr), sample.payload.to_bytes(), attachment))
 
     # -- the handling thread ---------------------------------------------------------------
-    def run(self, stop: threading.Event) -> None:
+    def run(self, stop: StopSignal) -> None:
         while not stop.is_set():
             try:
                 item = self._inbox.get(timeout=0.1)
@@ -286,7 +286,7 @@ class LiveSource:
         self._subscribers, self._tokens = [], []
 
 
-def _open_session(config: zenoh.Config, stop: threading.Event) -> zenoh.Session | None:
+def _open_session(config: zenoh.Config, stop: StopSignal) -> zenoh.Session | None:
     """Open (a client blocks until a router answers) unless `stop` is set first."""
     box: list[zenoh.Session] = []
     opener = threading.Thread(target=lambda: box.append(zenoh.open(config)), name="gmmap-ros2-open", daemon=True)
@@ -305,9 +305,7 @@ def run_ros2_agent(config: GmmapConfig) -> int:
     for name, instead in FILE_OPTIONS.items():
         if getattr(o, name) is not None:
             raise ValueError(f"agent.{name}: a ros2 source does not take it ({instead})")
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = StopSignal()
     print(
         f"gmmap agent {o.robot} config: {summary(agent=o, fit=config.fit, keyframe=config.keyframe, ros2=ros)}",
         file=sys.stderr,

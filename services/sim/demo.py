@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import json
 import math
-import signal
 import sys
 import tempfile
-import threading
 from pathlib import Path
 
 from services.http_client import HttpClient
@@ -15,6 +13,7 @@ from services.map_server.config import ServerConfig
 from services.sim.config import SimConfig
 from services.sim.fleet import SimSource, robot_name
 from services.sim.processes import Processes, free_port, http_security_args
+from services.stopping import StopSignal
 
 ROBOTS = 3
 RATE = 5.0  # scans per second per robot
@@ -38,9 +37,7 @@ def run_demo(server: ServerConfig, clients: SimConfig, duration: float) -> int:
     scheme = "https" if server.http_tls else "http"
     where = f"{scheme}://{server.http}/"
     print(f"gmmap demo: the viewer is at {where} ({ROBOTS} robots in the office; Ctrl-C stops)", flush=True)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = StopSignal()
     names = [robot_name(i) for i in range(ROBOTS)]
     scans = math.ceil((duration or FOREVER_S) * RATE)
     with tempfile.TemporaryDirectory(prefix="gmmap-demo-") as tmp:
