@@ -9,6 +9,7 @@ import importlib.util
 import itertools
 
 import numpy as np
+from numba import njit
 
 from gmm_core import FitConfig, Grid
 from gmm_core.reconstruct import count_beams
@@ -22,6 +23,34 @@ OCTOMAP_SAMPLES = 2000  # scans of a run whose OctoMap delta is built (12 ms eac
 def grid_state(hits: np.ndarray, misses: np.ndarray) -> np.ndarray:
     """0 unknown, 1 free, 2 occupied, as a counting grid decides."""
     return np.where(hits + misses == 0, 0, np.where(hits > misses, 2, 1)).astype(np.int8)
+
+
+@njit(cache=True, inline="always")
+def _cell_state(hits, misses):
+    """grid_state of one cell."""
+    return 0 if hits + misses == 0 else (2 if hits > misses else 1)
+
+
+@njit(cache=True, nogil=True)
+def add_scan_counts(hits, misses, first_seen, h, m, count, unseen) -> int:
+    """Adds one scan's counts `h`, `m` to the counting grid `hits`, `misses` (all float32, of one
+    window's shape), marks the cells it is the first to reach with `count` in `first_seen` (those
+    still `unseen`), and returns how many cells changed state (grid_state): one pass over the window
+    where numpy made a dozen (tests/unit/services/sim/test_byte_models.py compares them)."""
+    changed = 0
+    nz, ny, nx = h.shape
+    for z in range(nz):
+        for y in range(ny):
+            for x in range(nx):
+                dh, dm = h[z, y, x], m[z, y, x]
+                if dh + dm > 0:
+                    h0, m0 = hits[z, y, x], misses[z, y, x]
+                    h1, m1 = h0 + dh, m0 + dm
+                    hits[z, y, x], misses[z, y, x] = h1, m1
+                    changed += _cell_state(h0, m0) != _cell_state(h1, m1)
+                    if first_seen[z, y, x] == unseen:
+                        first_seen[z, y, x] = count
+    return changed
 
 
 def scan_window(grid: Grid, scan: RangeScan, max_range: float):
@@ -77,15 +106,9 @@ def replay_robot(
         if found is not None:
             window, sub = found
             h, m = count_beams(sub, [(scan.hits, scan.no_return, scan.pose)], max_range, threads=1)
-            touched = (h + m) > 0  # the only cells whose state the scan may change
-            window_hits, window_misses = hits[window], misses[window]
-            before = grid_state(window_hits[touched], window_misses[touched])
-            window_hits += h
-            window_misses += m
-            changed = grid_state(window_hits[touched], window_misses[touched]) != before
-            sizes["grid"][k] = GRID_DELTA_CELL_BYTES * np.count_nonzero(changed)
-            window_first = first_seen[window]  # a view: written through
-            window_first[touched & (window_first == unseen)] = k + 1
+            cells = [hits[window], misses[window], first_seen[window], h, m]  # views of the window
+            changed = add_scan_counts(*(a[None] if dim == 2 else a for a in cells), k + 1, unseen)  # 2D: one layer
+            sizes["grid"][k] = GRID_DELTA_CELL_BYTES * changed
         if with_octomap:
             sampled = k % stride == 0
             sizes["octomap"][k] = octomap_delta_bytes(scan, grid.resolution) if sampled else sizes["octomap"][k - 1]
