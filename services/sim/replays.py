@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 
 import numpy as np
@@ -45,25 +46,38 @@ def _replay(index: int, scans: int, stride: int) -> tuple[dict[str, np.ndarray],
 
 class BeamReplays:
     """Every robot's replay_robot of the scans it published (record.published), on as many
-    worker processes as there are cores (and robots), started at once."""
+    worker processes as there are cores (and robots). The workers are started on a thread of
+    their own: each is handed the fleet (its world's raster, 64 MB for the mine), which takes
+    the starting thread about a second, not the caller's."""
 
     def __init__(self, record: RunRecord):
-        names = [robot_name(i) for i in range(record.fleet.robots)]
-        stride = octomap_stride(sum(record.published.values()))
         spawn = multiprocessing.get_context("spawn")  # no fork of a process running Zenoh
         self._pool = ProcessPoolExecutor(
-            min(cpu_cores(), len(names)),
+            min(cpu_cores(), record.fleet.robots),
             mp_context=spawn,
             initializer=_start_worker,
             initargs=(record.fleet, record.grid, record.update_every),
         )
-        self._futures: dict[str, Future] = {
-            name: self._pool.submit(_replay, i, record.published.get(name, 0), stride) for i, name in enumerate(names)
-        }
+        self._futures: dict[str, Future] = {}
+        self._failed: BaseException | None = None  # why the workers could not be started
+        self._starting = threading.Thread(target=self._submit, args=(dict(record.published), record.fleet.robots))
+        self._starting.start()
+
+    def _submit(self, published: dict[str, int], robots: int) -> None:
+        stride = octomap_stride(sum(published.values()))
+        try:
+            for i in range(robots):
+                name = robot_name(i)
+                self._futures[name] = self._pool.submit(_replay, i, published.get(name, 0), stride)
+        except BaseException as error:  # raised to the caller of results()
+            self._failed = error
 
     def results(self, progress) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
         """(per robot: bytes per scan by kind, first-seen counts per cell), when all are done;
         `progress(n)` as each robot's n scans are."""
+        self._starting.join()
+        if self._failed is not None:
+            raise RuntimeError("gmmap sim: the beam replays could not be started") from self._failed
         per_scan, first_seen = {}, {}
         for name, future in self._futures.items():
             per_scan[name], first_seen[name] = future.result()
@@ -72,4 +86,5 @@ class BeamReplays:
         return per_scan, first_seen
 
     def close(self) -> None:
+        self._starting.join()
         self._pool.shutdown(cancel_futures=True)
