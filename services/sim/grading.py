@@ -92,8 +92,8 @@ def robot_report(record: RunRecord, name: str, kinds: dict, sizes: dict, stored:
 
 
 def grade(record: RunRecord, replays: BeamReplays | None = None) -> Grading:
-    """`replays`: the run's beam replays, started when its robots were done (None: start them now);
-    the offline maps are rebuilt while they run."""
+    """`replays`: the run's beam replays, made ready when its robots were done (None: start them
+    now); the offline maps are rebuilt while they run."""
     from tqdm import tqdm
 
     o, grid = record.options, record.grid
@@ -101,6 +101,7 @@ def grade(record: RunRecord, replays: BeamReplays | None = None) -> Grading:
     snapshots = record.snapshots
     stored_at = [s.stored for s in snapshots[:-1]] + [{n: sum(1 for r, _ in record.stored if r == n) for n in names}]
     replays = replays or BeamReplays(record)
+    replays.begin()
     try:
         with tqdm(total=sum(record.published.values()) + len(snapshots), desc="grading", unit="step") as bar:
             offline = offline_maps(record, stored_at, bar.update)

@@ -6,9 +6,10 @@ agent reaches the server through a CountingRelay (its link, bytes counted both w
 client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
 the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles (over TLS and
 with a bearer token when the server's settings and --http-token/--http-ca say so). When
-every agent is done (all its scans acknowledged) their beams are replayed in worker processes
-(services.sim.replays) while the server answers a final snapshot; then the server stops and the
-record is graded (services.sim.grading) and, with --report, written out (services.sim.render).
+every agent is done (all its scans acknowledged) the server answers a final snapshot, is stopped
+and restarted (meanwhile the workers that will replay the robots' beams get ready:
+services.sim.replays); then the record is graded (services.sim.grading) and, with --report,
+written out (services.sim.render).
 """
 
 from __future__ import annotations
@@ -205,7 +206,7 @@ def wait_prepared(procs: Processes, start: Path, groups: list[str]) -> None:
 
 def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplays]:
     """Run the fleet once; server, agents, relays and the tap are gone when this returns, and the
-    beam replays for its grading, started when the robots were done, are running."""
+    workers of its beam replays, started when the robots were done, wait for grading to begin."""
     from tqdm import tqdm
 
     o = config.sim
@@ -316,7 +317,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
                 print(f"gmmap sim: the robots of {g} exited {code}:\n{procs.log_tail(g)}", file=sys.stderr)
         record.agent_exit = {name: procs.running[g].returncode for name, g in group_of.items()}
         record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}
-        replays = BeamReplays(record)  # they need no server: they run while it answers the final snapshot
+        replays = BeamReplays(record)  # its workers get ready while the server answers the final snapshot
         snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
         robots = json.loads(http.get("/v1/robots", timeout=30))
         record.components = {r["robot"]: r["components"] for r in robots}

@@ -44,3 +44,12 @@ def test_replays_in_workers_give_the_plain_replay_and_the_observed_cells_of_each
         assert np.array_equal(mask, expected), stored
     assert not observed_masks(grid, first_seen, stored_at)[0].any()
     assert never(65_534).dtype == np.uint16 and never(65_535).dtype == np.uint32
+
+
+def test_replays_closed_before_grading_begins_end_without_replaying():
+    fleet = SimulatedFleet("office", 1, 3, 5.0, seed=3)
+    record = RunRecord(GmmapConfig(), fleet, evaluation_grid(fleet), 4, 0.0, published={"r0": 3})
+    replays = BeamReplays(record)
+    replays.close()  # returns (a worker waiting for `begin` is let go, or ended with its thread)
+    futures = list(replays._futures.values())
+    assert len(futures) == 1 and futures[0].done()
