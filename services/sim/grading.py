@@ -10,10 +10,11 @@ import numpy as np
 
 from gmm_core.metrics import auroc
 from services.host import cpu_cores
-from services.sim.byte_models import replay_beams
+from services.sim.byte_models import observed_masks
 from services.sim.fleet import robot_name
 from services.sim.rebuild import offline_maps
 from services.sim.record import RunRecord
+from services.sim.replays import BeamReplays
 from services.sim.report import AurocPoint, MissionWindow, RobotReport, SimReport
 
 MISSION_WINDOWS = 30  # of report.json's over_mission_time
@@ -90,16 +91,24 @@ def robot_report(record: RunRecord, name: str, kinds: dict, sizes: dict, stored:
     )
 
 
-def grade(record: RunRecord) -> Grading:
+def grade(record: RunRecord, replays: BeamReplays | None = None) -> Grading:
+    """`replays`: the run's beam replays, made ready when its robots were done (None: start them
+    now); the offline maps are rebuilt while they run."""
     from tqdm import tqdm
 
     o, grid = record.options, record.grid
     names = [robot_name(i) for i in range(o.robots)]
     snapshots = record.snapshots
     stored_at = [s.stored for s in snapshots[:-1]] + [{n: sum(1 for r, _ in record.stored if r == n) for n in names}]
-    with tqdm(total=sum(record.published.values()) + len(snapshots), desc="grading", unit="step") as bar:
-        per_scan, observed = replay_beams(record, stored_at, bar.update)
-        offline = offline_maps(record, stored_at, bar.update)
+    replays = replays or BeamReplays(record)
+    replays.begin()
+    try:
+        with tqdm(total=sum(record.published.values()) + len(snapshots), desc="grading", unit="step") as bar:
+            offline = offline_maps(record, stored_at, bar.update)
+            per_scan, first_seen = replays.results(bar.update)
+    finally:
+        replays.close()
+    observed = observed_masks(grid, first_seen, stored_at)
     truth = record.fleet.world.ground_truth(grid)
     by_robot, seen, lags = wire_figures(record)
     t0 = min(seen.values(), default=record.started)

@@ -6,8 +6,10 @@ agent reaches the server through a CountingRelay (its link, bytes counted both w
 client on the server (the WireTap) notes every scan, pose-graph update and Ack as it passes;
 the whole map is fetched over HTTP every few seconds, and N HTTP clients fetch tiles (over TLS and
 with a bearer token when the server's settings and --http-token/--http-ca say so). When
-every agent is done (all its scans acknowledged) the server stops and the record is graded
-(services.sim.grading) and, with --report, written out (services.sim.render).
+every agent is done (all its scans acknowledged) the server answers a final snapshot, is stopped
+and restarted (meanwhile the workers that will replay the robots' beams get ready:
+services.sim.replays); then the record is graded (services.sim.grading) and, with --report,
+written out (services.sim.render).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from services.sim.processes import Processes, die_with_parent, free_port, http_s
 from services.sim.record import RunRecord, Snapshot, blocks, evaluation_grid
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
+from services.sim.replays import BeamReplays
 from services.sim.tap import WireTap
 
 TILE = 256  # cells per tile side, as the viewer asks
@@ -201,8 +204,9 @@ def wait_prepared(procs: Processes, start: Path, groups: list[str]) -> None:
         time.sleep(0.1)
 
 
-def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
-    """Run the fleet once; server, agents, relays and the tap are gone when this returns."""
+def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplays]:
+    """Run the fleet once; server, agents, relays and the tap are gone when this returns, and the
+    workers of its beam replays, started when the robots were done, wait for grading to begin."""
     from tqdm import tqdm
 
     o = config.sim
@@ -214,7 +218,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
     names = [robot_name(i) for i in range(o.robots)]
     procs = Processes(workdir)
     relays: dict[str, CountingRelay] = {}
-    tap = clients = None
+    tap = clients = replays = None
     usage = resource.getrusage(resource.RUSAGE_SELF)
     cpu_before = usage.ru_utime + usage.ru_stime
     try:
@@ -312,6 +316,8 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             if code != 0:
                 print(f"gmmap sim: the robots of {g} exited {code}:\n{procs.log_tail(g)}", file=sys.stderr)
         record.agent_exit = {name: procs.running[g].returncode for name, g in group_of.items()}
+        record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}
+        replays = BeamReplays(record)  # its workers get ready while the server answers the final snapshot
         snapshot()  # the final map: an agent exits once its last pose-graph update is applied and acknowledged
         robots = json.loads(http.get("/v1/robots", timeout=30))
         record.components = {r["robot"]: r["components"] for r in robots}
@@ -321,7 +327,6 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
         procs.stop("restarted")
         record.events = list(tap.events)
         record.link_bytes = {name: (relay.up, relay.down) for name, relay in relays.items()}
-        record.published = {name: published_scans(workdir / f"outbox-{name}.db") for name in names}
         record.stored = stored_scans(workdir / "data", o.fleet)
         usage = resource.getrusage(resource.RUSAGE_SELF)
         record.cpu_s = {
@@ -329,7 +334,11 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> RunRecord:
             "agents": sum(procs.cpu_s[g] for g in set(group_of.values())),
             "harness": usage.ru_utime + usage.ru_stime - cpu_before,
         }
-        return record
+        return record, replays
+    except BaseException:
+        if replays is not None:
+            replays.close()
+        raise
     finally:
         if clients is not None:
             clients.stop()
@@ -346,8 +355,8 @@ def run_sim(config: GmmapConfig) -> int:
     if o.report:
         plots.require_matplotlib()  # before the run, not after a minute of it
     with tempfile.TemporaryDirectory(prefix="gmmap-sim-") as tmp:
-        record = run_fleet(config, Path(tmp))
-        grading = grade(record)
+        record, replays = run_fleet(config, Path(tmp))
+        grading = grade(record, replays)
         if o.report:
             write_report(grading, record, Path(o.report))
     report = grading.report
