@@ -29,7 +29,7 @@ _WORKER: tuple | None = None
 
 def _start_worker(fleet: SimulatedFleet, grid: Grid, update_every: int, begin, cancelled) -> None:
     global _WORKER
-    die_with_parent()  # a killed `gmmap sim` leaves no replay behind
+    die_with_parent(multiprocessing.parent_process().pid)  # a killed `gmmap sim` leaves no replay behind
     _WORKER = (fleet, grid, update_every, begin, cancelled)
 
 
