@@ -2,13 +2,19 @@
 
 Not numba's threading layer: a server shares its cores with ingest, HTTP and often robots, and
 numba's OpenMP threads spin at every barrier: two of them on a busy 2-core machine traced 6x
-slower than one (0.5 vs 3.1-3.7 M rays/s). (Tracers at nice +10 were tried: under a flood of
-HTTP requests they starved, and a lone large query waited minutes.)
+slower than one (0.5 vs 3.1-3.7 M rays/s).
+
+Tracer threads run at TRACER_NICE (Linux sets a nice value per thread): on a saturated machine the
+kernel's scheduler then gives the ingest and HTTP threads their CPU first, and the tracers the
+rest, where ingest pausing them (`ingest_first`) alone left a core idle between the pauses. Nice
++10 was tried before tiles were shed: under a flood of HTTP requests they starved; +5 still gives
+a tracer a third of a core beside a busy thread at 0 (docs/RELIABILITY.md).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -36,6 +42,16 @@ SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds
 SATURATED_QUEUE_PER_THREAD = 8
 SATURATED_WAIT_S = 1.0
 PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
+TRACER_NICE = 5  # added to a tracer thread's nice value (CFS weight 335 against 1024 at nice 0)
+
+
+def _lower_priority() -> None:
+    """Raise the calling thread's nice value by TRACER_NICE (Linux: per thread; elsewhere a no-op)."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + TRACER_NICE)
+    except (AttributeError, OSError):  # no per-thread priorities here: the tracers run at the server's
+        pass
 
 
 @dataclass(frozen=True)
@@ -83,7 +99,7 @@ class TracerPool:
     def __init__(self, threads: int, samples: SampleCache):
         self.threads = threads
         self.samples = samples
-        self._pool = ThreadPoolExecutor(threads, "gmmap-trace")
+        self._pool = ThreadPoolExecutor(threads, "gmmap-trace", initializer=_lower_priority)
         self._closed = False
         self._ingest_idle = threading.Event()
         self._ingest_idle.set()
