@@ -219,11 +219,14 @@ class ScanSampler:
     def nbytes(self) -> int:
         return self.occupied.nbytes + self.free.nbytes
 
-    def at(self, resolution: float) -> ScanSamples:
+    def at(self, resolution: float, samples_per_cell: float | None = None) -> ScanSamples:
+        """The samples at `resolution`, `samples_per_cell` (default: the sampler's). The streams depend
+        on the resolution only, so fewer samples per cell draw a prefix of each component's samples."""
+        spc = self.samples_per_cell if samples_per_cell is None else samples_per_cell
         keys = np.random.SeedSequence([self.seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
         return ScanSamples(
-            self.occupied.at(resolution, self.samples_per_cell, keys[0]),
-            self.free.at(resolution, self.samples_per_cell, keys[1]),
+            self.occupied.at(resolution, spc, keys[0]),
+            self.free.at(resolution, spc, keys[1]),
             self.origin,
         )
 

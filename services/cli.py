@@ -340,6 +340,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     setting(
         p,
+        "--busy-samples-per-cell",
+        "server.busy_samples_per_cell",
+        type=float,
+        metavar="N",
+        help="Monte-Carlo samples per cell of tile updates begun while every tracer is busy, refined once they are "
+        "idle (0: always the reconstruction's; default 1)",
+    )
+    setting(
+        p,
         "--ros-map",
         "ros2.map_topic",
         metavar="TOPIC",

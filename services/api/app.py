@@ -50,7 +50,11 @@ VIEWER = Path(__file__).with_name("static") / "viewer.html"
 SWAGGER_FILES = Path(fastapi_offline.__file__).with_name("static")
 SWAGGER_STATIC = "/static/swagger-ui"
 GRID_HEADERS = ["X-Grid-Origin", "X-Grid-Resolution", "X-Grid-Shape"]
-EXPOSED_HEADERS = GRID_HEADERS + ["X-Map-Age", "Retry-After"]  # to a viewer on another origin (CORS)
+EXPOSED_HEADERS = GRID_HEADERS + [
+    "X-Map-Age",
+    "X-Map-Samples-Per-Cell",
+    "Retry-After",
+]  # to a viewer on another origin (CORS)
 VIEWER_DEFAULT_VARIANCE = "__DEFAULT_VARIANCE__"  # in viewer.html, replaced by DEFAULT_VARIANCE when served
 
 
@@ -250,7 +254,9 @@ def create_app(
                 "occupied cell centres with their probability. "
                 "X-Map-Age: seconds the state served has been out of date "
                 f"(0: up to date; at most max_age when a previous state is served: under load, or while "
-                f"an update takes over {PATIENCE_S:g} s)",
+                f"an update takes over {PATIENCE_S:g} s). X-Map-Samples-Per-Cell: the fewest Monte-Carlo samples "
+                "per cell any scan of the state is counted with (fewer than the map's after updates while the "
+                "tracers were busy, until they are refined)",
             },
             503: {
                 "model": BusyBody,
@@ -362,6 +368,7 @@ def create_app(
             "X-Grid-Resolution": repr(grid.resolution),
             "X-Grid-Shape": ",".join(str(n) for n in grid.array_shape),
             "X-Map-Age": f"{answer.age:.6f}",
+            "X-Map-Samples-Per-Cell": f"{answer.samples_per_cell:g}",
         }
         state.metrics.tile_answers.labels(answer.kind).inc()
         state.metrics.tile_age.observe(answer.age)

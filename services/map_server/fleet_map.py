@@ -42,10 +42,13 @@ class FleetMap:
         samples_per_cell: float = 4.0,
         prior: float = DEFAULT_PRIOR,
         trace_threads: int | None = None,
+        busy_samples_per_cell: float | None = None,
         stored_bytes: Callable[[NodeKey], bytes] | None = None,
     ):
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
-        their models nor their bytes (a server keeps a shift's scans: nodes.py)."""
+        their models nor their bytes (a server keeps a shift's scans: nodes.py).
+        busy_samples_per_cell: what tile updates begun while every tracer is busy trace new and moved
+        nodes with (tiles.py); None: always `samples_per_cell`."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell
@@ -54,7 +57,7 @@ class FleetMap:
         self._samples = SampleCache(samples_per_cell, stored_bytes)
         self._tracers = TracerPool(self.trace_threads, self._samples)
         self._nodes = NodeStore(lambda lo, hi: self._tiles.mark_stale(lo, hi), hold_models=stored_bytes is None)
-        self._tiles = TileCache(self._lock, self._nodes, self._tracers, prior)
+        self._tiles = TileCache(self._lock, self._nodes, self._tracers, prior, samples_per_cell, busy_samples_per_cell)
 
     @property
     def dim(self) -> int | None:

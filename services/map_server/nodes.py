@@ -124,6 +124,7 @@ class Posed(NamedTuple):
     stamp: Stamp  # of `pose`
     node: Node
     pose: Pose  # node frame -> world
+    samples_per_cell: float | None = None  # what a tile counts it at; None: the map's (tiles.py, under load)
 
 
 @dataclass

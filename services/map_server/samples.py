@@ -3,8 +3,8 @@
 A node's samples are traced as they are drawn (gmm_core.scan_trace) and never held: what is kept
 is the node's model ready to sample, once for every resolution (gmm_core.sampling.ScanSampler:
 means, Cholesky factors, principal deviations, expected points per component, about 70 bytes a
-component in 2D), and per resolution asked the counts, offsets and weights (24 bytes a
-component), so a query neither decodes the node's message (held by the node, or read from the
+component in 2D), and per resolution (and samples per cell) asked the counts, offsets and weights
+(24 bytes a component), so a query neither decodes the node's message (held by the node, or read from the
 store when the node holds none) nor repeats its linear algebra. In the node frame: a pose-graph
 update moves the samples at trace time (Eq. 2) and never redraws them. Deterministic by the
 node's seed, so an evicted entry made again draws the same samples.
@@ -29,7 +29,7 @@ SAMPLE_CACHE_BYTES = 256 << 20  # nodes ready to sample, with their per-resoluti
 @dataclass
 class _Entry:
     sampler: ScanSampler
-    at: dict[float, ScanSamples] = field(default_factory=dict)
+    at: dict[tuple[float, float], ScanSamples] = field(default_factory=dict)  # by (resolution, samples per cell)
     nbytes: int = 0
 
 
@@ -43,26 +43,28 @@ class SampleCache:
         self._lock = threading.Lock()
         self._entries: OrderedDict[NodeKey, _Entry] = OrderedDict()
 
-    def samples(self, node: Node, resolution: float) -> ScanSamples:
+    def samples(self, node: Node, resolution: float, samples_per_cell: float | None = None) -> ScanSamples:
+        """The node's samples at `resolution`, `samples_per_cell` (default: the cache's)."""
+        at = (resolution, self.samples_per_cell if samples_per_cell is None else samples_per_cell)
         with self._lock:
             entry = self._entries.get(node.key)
             if entry is not None:
                 self._entries.move_to_end(node.key)
-                samples = entry.at.get(resolution)
+                samples = entry.at.get(at)
                 if samples is not None:
                     return samples
         # Made outside the lock; a thread that makes the same entry meanwhile makes the same samples.
         if entry is None:
             entry = _Entry(ScanSampler.of(self.model(node), node.seed, self.samples_per_cell))
-        samples = entry.sampler.at(resolution)
+        samples = entry.sampler.at(*at)
         with self._lock:
             held = self._entries.get(node.key)
             if held is None:  # new, or evicted meanwhile: counted with what it holds
                 held = self._entries[node.key] = entry
                 entry.nbytes = entry.sampler.nbytes + sum(_nbytes(s) for s in entry.at.values())
                 self.bytes_held += entry.nbytes
-            if resolution not in held.at:
-                held.at[resolution] = samples
+            if at not in held.at:
+                held.at[at] = samples
                 added = _nbytes(samples)
                 held.nbytes += added
                 self.bytes_held += added

@@ -217,6 +217,7 @@ def run_server(
         samples_per_cell=reconstruction.samples_per_cell,
         prior=reconstruction.prior,
         trace_threads=options.trace_threads,
+        busy_samples_per_cell=options.busy_samples_per_cell or None,
         stored_bytes=store.scan_reader(options.fleet),
     )
     state = ServerState(options.fleet, fleet_map, store)

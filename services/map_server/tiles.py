@@ -14,7 +14,11 @@ while the log outgrew its limit) is traced afresh on its next query.
 Under load a tile is served older rather than traced more (ingest first): every answer carries the
 age of its state, a previous state is served for at most MAX_STALE_S, and a request that would
 trace while the tracers are saturated may be shed (docs/ARCHITECTURE.md, "Ingest first, tiles
-degrade").
+degrade"). An update that begins while every tracer is busy counts the nodes it traces with fewer
+samples per cell (`busy_samples_per_cell`): the same expected counts (Eq. 10: a sample's weight is
+N pi_k / n_k), more Monte-Carlo noise, a fraction of the cost. Such nodes are traced again at the
+map's samples per cell once the tracers are idle, or when a request asks for every change
+(max_age 0); every answer says the fewest samples per cell it holds.
 """
 
 from __future__ import annotations
@@ -66,6 +70,7 @@ class TileAnswer:
     prob: np.ndarray
     age: float
     kind: str
+    samples_per_cell: float  # the fewest any node of the state is counted with
 
 
 @dataclass
@@ -76,7 +81,8 @@ class Tile:
     hits: np.ndarray  # float64, exact sums
     misses: np.ndarray
     seen: int  # change-log position up to which `held` accounts for every change
-    held: dict[NodeKey, Posed] = field(default_factory=dict)  # the nodes counted in, at the pose counted
+    held: dict[NodeKey, Posed] = field(default_factory=dict)  # the nodes counted in, at the pose and samples counted
+    thinned: int = 0  # nodes of `held` counted with the busy tracers' fewer samples per cell
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None  # None until the first trace succeeded
     prob_at: int = -1  # `changes` when `prob` was computed
@@ -111,13 +117,26 @@ class TileCache:
     and the node store; tracing runs outside it (and outside the GIL), so ingest never waits behind
     a tile, and different tiles trace in parallel. `mark_stale` is called under it."""
 
-    def __init__(self, lock: threading.RLock, nodes: NodeStore, tracers: TracerPool, prior: float):
+    def __init__(
+        self,
+        lock: threading.RLock,
+        nodes: NodeStore,
+        tracers: TracerPool,
+        prior: float,
+        samples_per_cell: float,
+        busy_samples_per_cell: float | None = None,
+    ):
+        """busy_samples_per_cell: what updates begun while every tracer is busy count new and moved
+        nodes with; None (or not below `samples_per_cell`, the map's): always the map's."""
         self._lock = lock
         self._nodes = nodes
         self._tracers = tracers
         # Background updates (`_refresh`): one per tracer thread at a time, each tracing on the pool.
         self._refresher = ThreadPoolExecutor(tracers.threads, "gmmap-refresh")
         self.prior = prior
+        self.samples_per_cell = samples_per_cell
+        thins = busy_samples_per_cell is not None and busy_samples_per_cell < samples_per_cell
+        self.busy_samples_per_cell = busy_samples_per_cell if thins else None
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
         self._bytes = 0
         self._boxes: tuple[list[Tile], np.ndarray, np.ndarray] | None = None  # while the tile set is unchanged
@@ -127,6 +146,7 @@ class TileCache:
         self._stale = 0  # answered with the previous state while it was being updated or the tracers saturated
         self._coalesced = 0  # answered with a recent state while every tracer was busy
         self._shed = 0  # refused: the tracers were saturated
+        self._thinned_updates = 0  # traced with busy_samples_per_cell
 
     def close(self) -> None:
         """No more background updates (the tracers are closed by their owner)."""
@@ -219,34 +239,36 @@ class TileCache:
                     return cached
                 self._admit(may_shed)  # it would trace, or wait for a trace: shed if they are saturated
                 if tile.lock.acquire(blocking=False):  # never waits under the map's lock
-                    work = self._begin_update(tile)
+                    work = self._begin_update(tile, full=max_age <= 0 or not self._tracers.load().busy)
                     break
             with tile.lock:  # another request updates it, and its previous state is too old or absent
                 pass
         return self._update(tile, work)
 
-    def _begin_update(self, tile: Tile) -> tuple:
+    def _begin_update(self, tile: Tile, full: bool) -> tuple:
         """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
         nodes reaching it or those changed since it last read the log, the changes and log position
-        it will account for, whether it is the first trace)."""
+        it will account for, whether it is the first trace, the samples per cell of what it traces:
+        None for the map's, which `full` asks for and which also re-traces thinned nodes)."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
+        samples_per_cell = None if full else self.busy_samples_per_cell
         afresh = first or tile.seen < self._nodes.log.start
         if afresh:
             nodes = self._nodes.reaching(tile.grid, tile.robots)
         else:
             nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
         tile.dirty_since = None  # from here on, changes are left for the next update
-        return afresh, nodes, changes, seen, first
+        return afresh, nodes, changes, seen, first, samples_per_cell
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, first = work
+        afresh, nodes, changes, seen, first, samples_per_cell = work
         with _held(tile.lock):
             try:
                 if afresh:
-                    self._trace_afresh(tile, nodes)
+                    self._trace_afresh(tile, nodes, samples_per_cell)
                 else:
-                    self._trace_changes(tile, nodes)
+                    self._trace_changes(tile, nodes, samples_per_cell)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -264,16 +286,18 @@ class TileCache:
                     self._misses += 1
                 else:
                     self._updates += 1
+                self._thinned_updates += samples_per_cell is not None
                 self._nodes.log.drop_before(min((t.seen for t in self._tiles.values()), default=seen))
-                return TileAnswer(prob, _age(tile), "updated")
+                return self._answer(tile, prob, _age(tile), "updated")
 
     def _refresh(self, tile: Tile) -> None:
         """Update `tile` in the background (a request served its previous state meanwhile)."""
         with self._lock:
             tile.refreshing = False
-            if tile.prob_at == tile.changes or not tile.lock.acquire(blocking=False):
-                return  # up to date, or a request is updating it
-            work = self._begin_update(tile)
+            full = not self._tracers.load().busy
+            if (tile.prob_at == tile.changes and not (tile.thinned and full)) or not tile.lock.acquire(blocking=False):
+                return  # up to date (and refined, or the tracers are busy), or a request is updating it
+            work = self._begin_update(tile, full)
         try:
             self._update(tile, work)
         except TracingStopped:
@@ -298,10 +322,15 @@ class TileCache:
         if tile.prob is None:
             return None
         if tile.prob_at == tile.changes:
+            if tile.thinned and max_age <= 0:
+                return None  # every change, with every sample: refined by this request
             if waited:
-                return TileAnswer(tile.prob, 0.0, "updated")
+                return self._answer(tile, tile.prob, 0.0, "updated")
             self._hits += 1
-            return TileAnswer(tile.prob, 0.0, "fresh")
+            if tile.thinned and not (tile.refreshing or tile.lock.locked() or self._tracers.load().busy):
+                tile.refreshing = True  # refined in the background while the tracers are idle
+                self._refresher.submit(self._refresh, tile)
+            return self._answer(tile, tile.prob, 0.0, "fresh")
         age = _age(tile)
         if age > max_age or max_age <= 0:
             return None
@@ -309,7 +338,7 @@ class TileCache:
             if patient:
                 return _WAIT
             self._stale += 1
-            return TileAnswer(tile.prob, age, "stale")
+            return self._answer(tile, tile.prob, age, "stale")
         load = self._tracers.load()
         if not (load.busy or load.saturated):
             if not patient:
@@ -319,11 +348,15 @@ class TileCache:
             return _WAIT
         if not load.saturated and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
             self._coalesced += 1
-            return TileAnswer(tile.prob, age, "coalesced")
+            return self._answer(tile, tile.prob, age, "coalesced")
         tile.refreshing = True
         self._refresher.submit(self._refresh, tile)
         self._stale += 1
-        return TileAnswer(tile.prob, age, "stale")
+        return self._answer(tile, tile.prob, age, "stale")
+
+    def _answer(self, tile: Tile, prob: np.ndarray, age: float, kind: str) -> TileAnswer:
+        thinned = tile.thinned and self.busy_samples_per_cell is not None
+        return TileAnswer(prob, age, kind, self.busy_samples_per_cell if thinned else self.samples_per_cell)
 
     def _admit(self, may_shed: bool) -> None:
         """Raise TracersSaturated (counted) when `may_shed` and the tracers are saturated."""
@@ -333,22 +366,25 @@ class TileCache:
                 self._shed += 1
                 raise TracersSaturated(load)
 
-    def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed]) -> None:
+    def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed], samples_per_cell: float | None) -> None:
         """Counts of every node in `reaching`, replacing what the tile held."""
-        if reaching:
-            tile.hits, tile.misses = self._tracers.trace(tile.grid, list(reaching.values()), [])
+        counted = [posed._replace(samples_per_cell=samples_per_cell) for posed in reaching.values()]
+        if counted:
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [])
         else:
             tile.hits, tile.misses = np.zeros(tile.grid.array_shape), np.zeros(tile.grid.array_shape)
-        tile.held = dict(reaching)
+        tile.held = {posed.key: posed for posed in counted}
+        tile.thinned = len(counted) if samples_per_cell is not None else 0
 
-    def _trace_changes(self, tile: Tile, changed: dict[NodeKey, Posed | None]) -> None:
-        """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile).
+    def _trace_changes(self, tile: Tile, changed: dict[NodeKey, Posed | None], samples_per_cell: float | None) -> None:
+        """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile), tracing
+        them with `samples_per_cell` (None: the map's, and the thinned nodes are traced again so).
 
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
-        held = tile.held
+        held, spc = tile.held, samples_per_cell
         moved = {k: held[k] for k, now in changed.items() if now is None and k in held}  # it left the tile
-        new = [now for k, now in changed.items() if now is not None and k not in held]
+        new = [now._replace(samples_per_cell=spc) for k, now in changed.items() if now is not None and k not in held]
         reposed = [
             (held[k], now) for k, now in changed.items() if now is not None and k in held and now.stamp != held[k].stamp
         ]
@@ -366,8 +402,13 @@ class TileCache:
             )
             for before, after in compress(reposed, far):
                 moved[before.key] = before
-                new.append(after)
+                new.append(after._replace(samples_per_cell=spc))
             # the others stay counted at the pose held, within the tolerance of where they stand now
+        if spc is None and tile.thinned:  # refined: taken out as counted, counted again with every sample
+            for k, posed in held.items():
+                if posed.samples_per_cell is not None and k not in moved:
+                    moved[k] = posed
+                    new.append((changed.get(k) or posed)._replace(samples_per_cell=None))
         if not (new or moved):
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of
@@ -377,11 +418,13 @@ class TileCache:
             tile.hits += hits
             tile.misses += misses
         else:
-            kept = [posed for k, posed in held.items() if k not in moved]
+            kept = [posed._replace(samples_per_cell=spc) for k, posed in held.items() if k not in moved]
             tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [])
+            held.update((posed.key, posed) for posed in kept)
         for k in moved:
             del held[k]
         held.update((posed.key, posed) for posed in new)
+        tile.thinned = sum(posed.samples_per_cell is not None for posed in held.values())
 
     def _evict(self) -> None:
         """Drop least recently used tiles over TILE_CACHE_BYTES (always keeping the newest)."""
@@ -400,6 +443,7 @@ class TileCache:
                 "stale": self._stale,
                 "coalesced": self._coalesced,
                 "shed": self._shed,
+                "thinned_updates": self._thinned_updates,
                 "trace_queued": load.queued,
                 "tiles": len(self._tiles),
                 "tile_bytes": self._bytes,

@@ -172,5 +172,6 @@ class TracerPool:
             if self._closed:
                 raise TracingStopped("the map server is stopping")
             # Eq. 2: the node-frame samples moved by the node's world pose as they are traced.
-            counts.add(self.samples.samples(posed.node, grid.resolution), posed.pose, sign)
+            samples = self.samples.samples(posed.node, grid.resolution, posed.samples_per_cell)
+            counts.add(samples, posed.pose, sign)
         return counts.arrays()

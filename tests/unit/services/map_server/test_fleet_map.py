@@ -155,9 +155,9 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: 32, still over one step
     afresh, trace_afresh = [], TileCache._trace_afresh
 
-    def traced_afresh(cache, tile, reaching):
+    def traced_afresh(cache, tile, reaching, samples_per_cell):
         afresh.append((cache, tile.grid))
-        trace_afresh(cache, tile, reaching)
+        trace_afresh(cache, tile, reaching, samples_per_cell)
 
     monkeypatch.setattr(TileCache, "_trace_afresh", traced_afresh)
     scans, models = fitted

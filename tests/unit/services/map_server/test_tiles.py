@@ -7,8 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from gmm_core import Grid, fit_scan
-from protocol import ScanMessage
+from gmm_core import Grid, Pose, fit_scan
+from gmm_core.occupancy import map_estimate
+from protocol import PoseGraphUpdate, ScanMessage
 from services.map_server import tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import MAX_STALE_S, TileCache
@@ -36,7 +37,7 @@ def test_an_answer_says_how_long_its_state_has_been_out_of_date(messages):
     fleet = fleet_of(messages[:20])
     first = fleet.occupancy_answer(GRID)
     assert (first.kind, first.age) == ("updated", 0.0)
-    assert fleet.occupancy_answer(GRID) == tiles.TileAnswer(first.prob, 0.0, "fresh")
+    assert fleet.occupancy_answer(GRID) == tiles.TileAnswer(first.prob, 0.0, "fresh", fleet.samples_per_cell)
     changed = time.monotonic()  # at most the time the change is stamped with
     fleet.add_scan(messages[20])
     (tile,) = fleet._tiles.values()
@@ -73,13 +74,13 @@ def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(
     fleet.add_scan(messages[20])
     updates, trace_changes = [], TileCache._trace_changes
 
-    def traced_changes(cache, tile, changed):
+    def traced_changes(cache, tile, changed, samples_per_cell):
         updates.append(sorted(key[1] for key in changed))
         if len(updates) == 1:  # three scans arrive while the first update traces
             for msg in messages[21:24]:
                 fleet.add_scan(msg)
             time.sleep(0.02)
-        trace_changes(cache, tile, changed)
+        trace_changes(cache, tile, changed, samples_per_cell)
 
     monkeypatch.setattr(TileCache, "_trace_changes", traced_changes)
     during = fleet.occupancy_answer(GRID)
@@ -159,3 +160,53 @@ def test_saturation_and_retry_after_follow_the_queue_and_its_estimated_wait(load
     assert load.saturated is saturated and load.busy
     assert TracersSaturated(load).retry_after == retry_after
     assert not TracerLoad(2, 0, 1, 0.0).busy
+
+
+def test_updates_begun_while_the_tracers_are_busy_thin_the_samples_and_idle_tracers_refine_them(messages, monkeypatch):
+    """While every tracer is busy, an update counts the nodes it traces with busy_samples_per_cell,
+    new and moved alike (a moved node is taken out as it was counted); the answer says so. Idle
+    tracers refine the tile in the background, to the bytes of a fresh map."""
+    monkeypatch.setattr(tiles, "REPOSE_CELLS", 0.0)  # every move traced
+    fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 4.0  # idle tracers: the map's
+    idle = TracerPool.load
+    monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
+    fleet.add_scan(messages[20])
+    shift = np.array([0.3, -0.2, 0.05])
+    update = PoseGraphUpdate(
+        "f", "r1", 1, tuple((m.node, Pose.from_xytheta(*(m.pose.as_xytheta() + shift))) for m in messages[:3])
+    )
+    fleet.apply_poses(update)
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 4.0  # the previous state, served while busy
+    wait_for(lambda: fleet.occupancy_answer(GRID).kind == "fresh", 30, "the background update")
+    thin = {m.node: 1.0 for m in messages[:3] + messages[20:21]}
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 1.0
+    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:21], update, thin))
+    assert not np.array_equal(offline(messages[:21], update, thin), offline(messages[:21], update, {}))
+    monkeypatch.setattr(TracerPool, "load", idle)
+    assert fleet.occupancy_answer(GRID).kind == "fresh"  # served as it is, refined behind it
+    wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
+    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:21], update, {}))
+    assert fleet.cache_stats()["thinned_updates"] == 1
+
+
+def test_a_request_for_every_change_refines_a_thinned_tile_at_once(messages, monkeypatch):
+    fleet = fleet_of(messages[:20], busy_samples_per_cell=2.0)
+    monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
+    fleet.occupancy(GRID)  # the first trace, begun while busy
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 2.0
+    exact = fleet.occupancy_answer(GRID, max_age=0)
+    assert (exact.kind, exact.samples_per_cell) == ("updated", 4.0)
+    assert np.array_equal(exact.prob, offline(messages[:20], None, {}))
+
+
+def offline(messages, update, samples_per_cell: dict[int, float]) -> np.ndarray:
+    """p(occupied) on GRID of `messages` re-posed by `update`, each node traced with
+    `samples_per_cell[node]` (default the map's), summed exactly as a tile sums them."""
+    fleet = fleet_of(messages)
+    if update is not None:
+        fleet.apply_poses(update)
+    reaching = fleet._nodes.reaching(GRID, None)
+    counted = [posed._replace(samples_per_cell=samples_per_cell.get(key[1])) for key, posed in reaching.items()]
+    hits, misses = fleet._tracers.trace(GRID, counted, [])
+    return map_estimate(hits.astype(np.float32), misses.astype(np.float32), fleet.prior)
