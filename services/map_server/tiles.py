@@ -14,11 +14,12 @@ while the log outgrew its limit) is traced afresh on its next query.
 Under load a tile is served older rather than traced more (ingest first): every answer carries the
 age of its state, a previous state is served for at most MAX_STALE_S, and a request that would
 trace while the tracers are saturated may be shed (docs/ARCHITECTURE.md, "Ingest first, tiles
-degrade"). An update that begins while every tracer is busy counts the nodes it traces with fewer
-samples per cell (`busy_samples_per_cell`): the same expected counts (Eq. 10: a sample's weight is
-N pi_k / n_k), more Monte-Carlo noise, a fraction of the cost. Such nodes are traced again at the
-map's samples per cell once the tracers are idle, or when a request asks for every change
-(max_age 0); every answer says the fewest samples per cell it holds.
+degrade"). An update that begins while the tracers have other work counts the nodes it traces with
+fewer samples per cell (`busy_samples_per_cell`): the same expected counts (Eq. 10: a sample's
+weight is N pi_k / n_k), more Monte-Carlo noise, a fraction of the cost. Such nodes are traced again
+at the map's samples per cell, REFINE_NODES at a time, while the tracers are idle, and all at once
+when a request asks for every change (max_age 0); every answer says the fewest samples per cell it
+holds.
 """
 
 from __future__ import annotations
@@ -56,6 +57,9 @@ COALESCE_CHANGES = 16  # ... with at most this many changes since is served inst
 # of the tile's cells since the pose the tile counts it at: an optimiser moves every node of a loop a
 # little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
 REPOSE_CELLS = 0.25
+# Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
+# is a background update like any other, and one of a whole tile would hold the tracers for seconds.
+REFINE_NODES = 64
 
 
 _WAIT = object()  # TileCache._cached: wait for the update under way
@@ -239,17 +243,19 @@ class TileCache:
                     return cached
                 self._admit(may_shed)  # it would trace, or wait for a trace: shed if they are saturated
                 if tile.lock.acquire(blocking=False):  # never waits under the map's lock
-                    work = self._begin_update(tile, full=max_age <= 0 or not self._tracers.load().busy)
+                    full = max_age <= 0 or self._tracers.load().idle
+                    work = self._begin_update(tile, full, refine=None if max_age <= 0 else REFINE_NODES)
                     break
             with tile.lock:  # another request updates it, and its previous state is too old or absent
                 pass
         return self._update(tile, work)
 
-    def _begin_update(self, tile: Tile, full: bool) -> tuple:
+    def _begin_update(self, tile: Tile, full: bool, refine: int | None) -> tuple:
         """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
         nodes reaching it or those changed since it last read the log, the changes and log position
         it will account for, whether it is the first trace, the samples per cell of what it traces:
-        None for the map's, which `full` asks for and which also re-traces thinned nodes)."""
+        None for the map's, which `full` asks for, and how many thinned nodes it then traces again
+        with every sample: `refine`, None for all)."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
         samples_per_cell = None if full else self.busy_samples_per_cell
         afresh = first or tile.seen < self._nodes.log.start
@@ -258,17 +264,17 @@ class TileCache:
         else:
             nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
         tile.dirty_since = None  # from here on, changes are left for the next update
-        return afresh, nodes, changes, seen, first, samples_per_cell
+        return afresh, nodes, changes, seen, first, samples_per_cell, refine
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, first, samples_per_cell = work
+        afresh, nodes, changes, seen, first, samples_per_cell, refine = work
         with _held(tile.lock):
             try:
                 if afresh:
                     self._trace_afresh(tile, nodes, samples_per_cell)
                 else:
-                    self._trace_changes(tile, nodes, samples_per_cell)
+                    self._trace_changes(tile, nodes, samples_per_cell, refine)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -294,10 +300,10 @@ class TileCache:
         """Update `tile` in the background (a request served its previous state meanwhile)."""
         with self._lock:
             tile.refreshing = False
-            full = not self._tracers.load().busy
+            full = self._tracers.load().idle
             if (tile.prob_at == tile.changes and not (tile.thinned and full)) or not tile.lock.acquire(blocking=False):
                 return  # up to date (and refined, or the tracers are busy), or a request is updating it
-            work = self._begin_update(tile, full)
+            work = self._begin_update(tile, full, REFINE_NODES)
         try:
             self._update(tile, work)
         except TracingStopped:
@@ -327,7 +333,7 @@ class TileCache:
             if waited:
                 return self._answer(tile, tile.prob, 0.0, "updated")
             self._hits += 1
-            if tile.thinned and not (tile.refreshing or tile.lock.locked() or self._tracers.load().busy):
+            if tile.thinned and not (tile.refreshing or tile.lock.locked()) and self._tracers.load().idle:
                 tile.refreshing = True  # refined in the background while the tracers are idle
                 self._refresher.submit(self._refresh, tile)
             return self._answer(tile, tile.prob, 0.0, "fresh")
@@ -376,9 +382,12 @@ class TileCache:
         tile.held = {posed.key: posed for posed in counted}
         tile.thinned = len(counted) if samples_per_cell is not None else 0
 
-    def _trace_changes(self, tile: Tile, changed: dict[NodeKey, Posed | None], samples_per_cell: float | None) -> None:
+    def _trace_changes(
+        self, tile: Tile, changed: dict[NodeKey, Posed | None], samples_per_cell: float | None, refine: int | None
+    ) -> None:
         """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile), tracing
-        them with `samples_per_cell` (None: the map's, and the thinned nodes are traced again so).
+        them with `samples_per_cell` (None: the map's, and up to `refine` thinned nodes, None: all, are
+        traced again so).
 
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
@@ -405,10 +414,10 @@ class TileCache:
                 new.append(after._replace(samples_per_cell=spc))
             # the others stay counted at the pose held, within the tolerance of where they stand now
         if spc is None and tile.thinned:  # refined: taken out as counted, counted again with every sample
-            for k, posed in held.items():
-                if posed.samples_per_cell is not None and k not in moved:
-                    moved[k] = posed
-                    new.append((changed.get(k) or posed)._replace(samples_per_cell=None))
+            thinned = [(k, posed) for k, posed in held.items() if posed.samples_per_cell is not None and k not in moved]
+            for k, posed in thinned[:refine]:
+                moved[k] = posed
+                new.append((changed.get(k) or posed)._replace(samples_per_cell=None))
         if not (new or moved):
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of

@@ -64,6 +64,11 @@ class TracerLoad:
     wait_s: float
 
     @property
+    def idle(self) -> bool:
+        """No tracer has work."""
+        return self.queued + self.running == 0
+
+    @property
     def busy(self) -> bool:
         """Every tracer thread has work: a new trace would share them or wait."""
         return self.queued + self.running >= self.threads

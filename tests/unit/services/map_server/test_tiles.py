@@ -74,13 +74,13 @@ def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(
     fleet.add_scan(messages[20])
     updates, trace_changes = [], TileCache._trace_changes
 
-    def traced_changes(cache, tile, changed, samples_per_cell):
+    def traced_changes(cache, tile, changed, samples_per_cell, refine):
         updates.append(sorted(key[1] for key in changed))
         if len(updates) == 1:  # three scans arrive while the first update traces
             for msg in messages[21:24]:
                 fleet.add_scan(msg)
             time.sleep(0.02)
-        trace_changes(cache, tile, changed, samples_per_cell)
+        trace_changes(cache, tile, changed, samples_per_cell, refine)
 
     monkeypatch.setattr(TileCache, "_trace_changes", traced_changes)
     during = fleet.occupancy_answer(GRID)
@@ -165,8 +165,9 @@ def test_saturation_and_retry_after_follow_the_queue_and_its_estimated_wait(load
 def test_updates_begun_while_the_tracers_are_busy_thin_the_samples_and_idle_tracers_refine_them(messages, monkeypatch):
     """While every tracer is busy, an update counts the nodes it traces with busy_samples_per_cell,
     new and moved alike (a moved node is taken out as it was counted); the answer says so. Idle
-    tracers refine the tile in the background, to the bytes of a fresh map."""
+    tracers refine the tile in the background, REFINE_NODES at a time, to the bytes of a fresh map."""
     monkeypatch.setattr(tiles, "REPOSE_CELLS", 0.0)  # every move traced
+    monkeypatch.setattr(tiles, "REFINE_NODES", 3)  # the 4 thinned nodes in two refinements
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
     assert fleet.occupancy_answer(GRID).samples_per_cell == 4.0  # idle tracers: the map's
     idle = TracerPool.load
@@ -187,7 +188,7 @@ def test_updates_begun_while_the_tracers_are_busy_thin_the_samples_and_idle_trac
     assert fleet.occupancy_answer(GRID).kind == "fresh"  # served as it is, refined behind it
     wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
     assert np.array_equal(fleet.occupancy(GRID), offline(messages[:21], update, {}))
-    assert fleet.cache_stats()["thinned_updates"] == 1
+    assert fleet.cache_stats()["thinned_updates"] == 1 and fleet.cache_stats()["updates"] == 3, fleet.cache_stats()
 
 
 def test_a_request_for_every_change_refines_a_thinned_tile_at_once(messages, monkeypatch):
