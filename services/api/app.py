@@ -201,7 +201,7 @@ def create_app(
     access = access_dependency(tokens)
     viewer_html = VIEWER.read_text(encoding="utf-8").replace(VIEWER_DEFAULT_VARIANCE, repr(default_variance))
     encoded = EncodedTiles()
-    synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0}
+    synced = {"hits": 0, "misses": 0, "updates": 0, "stale": 0, "thinned_updates": 0}
     sync_lock = threading.Lock()
 
     @app.exception_handler(ApiError)
@@ -472,6 +472,7 @@ def create_app(
                 ("misses", state.metrics.cache_misses),
                 ("updates", state.metrics.cache_updates),
                 ("stale", state.metrics.cache_stale),
+                ("thinned_updates", state.metrics.cache_thinned),
             ):
                 if stats[key] > synced[key]:
                     counter.inc(stats[key] - synced[key])

@@ -48,6 +48,11 @@ class ServerMetrics:
             "Requests answered with a tile's previous state while another request updated it",
             registry=r,
         )
+        self.cache_thinned = Counter(
+            "gmmap_cache_thinned_updates",
+            "Tile updates traced with server.busy_samples_per_cell while the tracers had other work",
+            registry=r,
+        )
         self.tile_answers = Counter(
             "gmmap_tile_answers",
             "HTTP occupancy answers by kind: fresh (cached, up to date), updated (traced for the request), stale "

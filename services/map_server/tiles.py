@@ -32,7 +32,7 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from itertools import compress
+from itertools import compress, islice
 
 import numpy as np
 
@@ -57,6 +57,7 @@ COALESCE_CHANGES = 16  # ... with at most this many changes since is served inst
 # of the tile's cells since the pose the tile counts it at: an optimiser moves every node of a loop a
 # little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
 REPOSE_CELLS = 0.25
+BUSY_REPOSE_CELLS = 1.0  # the same in an update with busy tracers, whose fewer samples are noisier than that
 # Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
 # is a background update like any other, and one of a whole tile would hold the tracers for seconds.
 REFINE_NODES = 64
@@ -254,8 +255,8 @@ class TileCache:
         """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
         nodes reaching it or those changed since it last read the log, the changes and log position
         it will account for, whether it is the first trace, the samples per cell of what it traces:
-        None for the map's, which `full` asks for, and how many thinned nodes it then traces again
-        with every sample: `refine`, None for all)."""
+        None for the map's, which `full` asks for, and then the thinned nodes, at most `refine` (None:
+        all), it traces again with every sample, where they stand now)."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
         samples_per_cell = None if full else self.busy_samples_per_cell
         afresh = first or tile.seen < self._nodes.log.start
@@ -263,18 +264,20 @@ class TileCache:
             nodes = self._nodes.reaching(tile.grid, tile.robots)
         else:
             nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
+        thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
+        refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)} if full and not afresh else {}
         tile.dirty_since = None  # from here on, changes are left for the next update
-        return afresh, nodes, changes, seen, first, samples_per_cell, refine
+        return afresh, nodes, changes, seen, first, samples_per_cell, refined
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, first, samples_per_cell, refine = work
+        afresh, nodes, changes, seen, first, samples_per_cell, refined = work
         with _held(tile.lock):
             try:
                 if afresh:
                     self._trace_afresh(tile, nodes, samples_per_cell)
                 else:
-                    self._trace_changes(tile, nodes, samples_per_cell, refine)
+                    self._trace_changes(tile, nodes, samples_per_cell, refined)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -383,11 +386,15 @@ class TileCache:
         tile.thinned = len(counted) if samples_per_cell is not None else 0
 
     def _trace_changes(
-        self, tile: Tile, changed: dict[NodeKey, Posed | None], samples_per_cell: float | None, refine: int | None
+        self,
+        tile: Tile,
+        changed: dict[NodeKey, Posed | None],
+        samples_per_cell: float | None,
+        refined: dict[NodeKey, Posed],
     ) -> None:
         """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile), tracing
-        them with `samples_per_cell` (None: the map's, and up to `refine` thinned nodes, None: all, are
-        traced again so).
+        them with `samples_per_cell` (None: the map's), and trace the thinned nodes in `refined` again
+        with every sample, where they stand now.
 
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
@@ -397,7 +404,7 @@ class TileCache:
         reposed = [
             (held[k], now) for k, now in changed.items() if now is not None and k in held and now.stamp != held[k].stamp
         ]
-        if reposed:  # traced again only when some ray end moved over REPOSE_CELLS of a cell
+        if reposed:  # traced again only when some ray end moved over (BUSY_)REPOSE_CELLS of a cell
             was, now = zip(*reposed)
             far = (
                 displacements(
@@ -407,17 +414,16 @@ class TileCache:
                     np.array([p.pose.R for p in now]),
                     np.array([p.node.reach for p in now]),
                 )
-                > REPOSE_CELLS * tile.grid.resolution
+                > (REPOSE_CELLS if spc is None else BUSY_REPOSE_CELLS) * tile.grid.resolution
             )
             for before, after in compress(reposed, far):
                 moved[before.key] = before
                 new.append(after._replace(samples_per_cell=spc))
             # the others stay counted at the pose held, within the tolerance of where they stand now
-        if spc is None and tile.thinned:  # refined: taken out as counted, counted again with every sample
-            thinned = [(k, posed) for k, posed in held.items() if posed.samples_per_cell is not None and k not in moved]
-            for k, posed in thinned[:refine]:
-                moved[k] = posed
-                new.append((changed.get(k) or posed)._replace(samples_per_cell=None))
+        for k, now in refined.items():  # taken out as counted, counted again with every sample
+            if k not in moved and k in held:
+                moved[k] = held[k]
+                new.append(now)
         if not (new or moved):
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of

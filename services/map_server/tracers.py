@@ -42,6 +42,8 @@ SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds
 SATURATED_QUEUE_PER_THREAD = 8
 SATURATED_WAIT_S = 1.0
 PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
+# Nodes traced in one call of the kernel: tracers look for ingest and for a stop between batches.
+BATCH_NODES = 32
 TRACER_NICE = 5  # added to a tracer thread's nice value (CFS weight 335 against 1024 at nice 0)
 
 
@@ -172,11 +174,12 @@ class TracerPool:
 
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
         counts = GridCounts(grid)
-        for sign, posed in entries:
+        for first in range(0, len(entries), BATCH_NODES):
             self._ingest_idle.wait()
             if self._closed:
                 raise TracingStopped("the map server is stopping")
             # Eq. 2: the node-frame samples moved by the node's world pose as they are traced.
-            samples = self.samples.samples(posed.node, grid.resolution, posed.samples_per_cell)
-            counts.add(samples, posed.pose, sign)
+            batch = entries[first : first + BATCH_NODES]
+            samples = [self.samples.samples(posed.node, grid.resolution, posed.samples_per_cell) for _, posed in batch]
+            counts.add_many([(s, posed.pose, sign) for s, (sign, posed) in zip(samples, batch)])
         return counts.arrays()

@@ -64,6 +64,28 @@ def test_fused_trace_equals_tracing_every_sample(dim):
     assert skipped > 0  # the test exercises the skipping
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_many_scans_in_one_call_equal_adding_them_one_by_one(dim):
+    """add_many (one kernel call for a batch of nodes) against add node by node, bit for bit:
+    random scans, poses, signs and samples per cell, some with no free mixture."""
+    rng = np.random.default_rng(20 + dim)
+    shape = (23, 19) if dim == 2 else (13, 11, 9)
+    grid = Grid(rng.uniform(-4, 0, dim), 0.3, shape)
+    scans = []
+    for i in range(9):
+        free = random_mixture(rng, dim, 3, 8.0, 50) if i % 3 else Mixture.empty(dim)
+        model = ScanModel(random_mixture(rng, dim, 10, 6.0, 400), free, rng.uniform(-1, 1, dim), 10.0)
+        samples = scan_samples(model, grid.resolution, seed=i, samples_per_cell=float(rng.choice([1.0, 4.0])))
+        scans.append((samples, random_pose(rng, dim), float(rng.choice([1.0, -1.0]))))
+    one_by_one, batched = GridCounts(grid), GridCounts(grid)
+    for scan in scans:
+        one_by_one.add(*scan)
+    batched.add_many(scans)
+    assert batched.samples_traced == one_by_one.samples_traced > 0
+    for a, b in zip(batched.arrays(), one_by_one.arrays()):
+        assert np.array_equal(a, b) and np.abs(a).sum() > 0
+
+
 def test_a_scan_taken_out_again_leaves_the_counts_bit_for_bit():
     """Counts are sums of quantised weights: adding a scan at one pose and subtracting it there
     again gives back exactly the counts without it (a cached tile updated for a moved node)."""

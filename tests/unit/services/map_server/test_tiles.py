@@ -74,13 +74,13 @@ def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(
     fleet.add_scan(messages[20])
     updates, trace_changes = [], TileCache._trace_changes
 
-    def traced_changes(cache, tile, changed, samples_per_cell, refine):
+    def traced_changes(cache, tile, changed, samples_per_cell, refined):
         updates.append(sorted(key[1] for key in changed))
         if len(updates) == 1:  # three scans arrive while the first update traces
             for msg in messages[21:24]:
                 fleet.add_scan(msg)
             time.sleep(0.02)
-        trace_changes(cache, tile, changed, samples_per_cell, refine)
+        trace_changes(cache, tile, changed, samples_per_cell, refined)
 
     monkeypatch.setattr(TileCache, "_trace_changes", traced_changes)
     during = fleet.occupancy_answer(GRID)
