@@ -13,7 +13,11 @@ then the second's pose-graph updates are applied and the tiles brought up to dat
 per mission second with closures: nodes moved and the tiles' update CPU s, for both schedules;
 then the seconds of the new scans per mission second. Usage:
 
-    .venv/bin/python bench/tile_closures.py [--robots 20] [--seconds 30] [--rate 10]
+    .venv/bin/python bench/tile_closures.py [--robots 20] [--seconds 30] [--rate 10] \
+        [--samples-per-cell 4] [--repose-cells 0.25]
+
+`--samples-per-cell 1 --repose-cells 1` prices what a server's updates with busy tracers trace
+(server.busy_samples_per_cell, tiles.BUSY_REPOSE_CELLS).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 from gmm_core import Grid, fit_scan  # noqa: E402
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
 from services.agent.sources import Node, RelaxingCorrections  # noqa: E402
+from services.map_server import tiles  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
 from services.sim.fleet import SimulatedFleet, correction_interval, robot_name  # noqa: E402
 from services.sim.record import evaluation_grid  # noqa: E402
@@ -87,7 +92,10 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--rate", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--samples-per-cell", type=float, default=4.0)
+    parser.add_argument("--repose-cells", type=float, default=tiles.REPOSE_CELLS)
     args = parser.parse_args()
+    tiles.REPOSE_CELLS = args.repose_cells
     schedules = {"at one instant": False, "spread": True}
     closure_s, moved, new_s = {}, {}, {}
     for name, spread in schedules.items():
@@ -95,7 +103,7 @@ def main() -> int:
         fleet, steps = mission(args.robots, args.seconds, args.rate, args.seed, spread)
         grids = viewer_grids(evaluation_grid(fleet))
         print(f"{name}: {sum(len(m) for m, _ in steps)} scans fitted in {time.perf_counter() - start:.0f} s")
-        fleet_map = FleetMap("f", trace_threads=1)
+        fleet_map = FleetMap("f", trace_threads=1, samples_per_cell=args.samples_per_cell)
         closure_s[name], moved[name], new_s[name] = {}, {}, 0.0
         for second, (messages, updates) in enumerate(steps, 1):
             fleet_map.add_scans(messages)

@@ -16,7 +16,7 @@ makes skipping a component exact.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -191,11 +191,33 @@ class MixtureSampler:
 
     def samples(self, counts: np.ndarray, key: np.uint64) -> MixtureSamples:
         counts = np.ascontiguousarray(counts, dtype=np.int64)
-        weights = np.round(self.expected_points / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+        weights = np.rint(self.expected_points / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
         return MixtureSamples(self.means, self.chol, counts, np.cumsum(counts) - counts, weights, key)
 
     def at(self, resolution: float, samples_per_cell: float, key: np.uint64) -> MixtureSamples:
-        return self.samples(_counts(self.sigmas, self.expected_points, resolution, samples_per_cell), key)
+        """`samples` of the counts `samples_per_component` gives, in one kernel (a server makes one per
+        node, resolution and samples per cell, holding the interpreter: the numpy expressions of
+        `_counts` and `samples` cost ten times as much on a 2D scan's few dozen components)."""
+        counts, offsets, weights = _plan(self.sigmas, self.expected_points, resolution, samples_per_cell)
+        return MixtureSamples(self.means, self.chol, counts, offsets, weights, key)
+
+
+@njit(cache=True)
+def _plan(sigmas, expected_points, resolution, samples_per_cell):
+    """The counts of `_counts`, their offsets and the weights of MixtureSampler.samples, component by
+    component in the same operations, so the same bits (tests/unit/gmm_core/test_sampling.py)."""
+    k_total, d = sigmas.shape
+    counts, offsets, weights = np.empty(k_total, np.int64), np.empty(k_total, np.int64), np.empty(k_total)
+    total = 0
+    for k in range(k_total):
+        cells = 1.0
+        for a in range(d):
+            cells *= max(1.0, 4.0 * sigmas[k, a] / resolution)
+        n = min(max(np.ceil(samples_per_cell * max(expected_points[k], cells)), 1.0), MAX_SAMPLES_PER_COMPONENT)
+        counts[k], offsets[k] = np.int64(n), total
+        total += counts[k]
+        weights[k] = np.rint(expected_points[k] / max(counts[k], 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
+    return counts, offsets, weights
 
 
 @dataclass(frozen=True)
@@ -208,6 +230,7 @@ class ScanSampler:
     origin: np.ndarray
     seed: int
     samples_per_cell: float
+    _keys: dict[float, np.ndarray] = field(default_factory=dict, compare=False, repr=False)  # by resolution
 
     @staticmethod
     def of(model: ScanModel, seed: int, samples_per_cell: float = 1.0) -> ScanSampler:
@@ -223,7 +246,10 @@ class ScanSampler:
         """The samples at `resolution`, `samples_per_cell` (default: the sampler's). The streams depend
         on the resolution only, so fewer samples per cell draw a prefix of each component's samples."""
         spc = self.samples_per_cell if samples_per_cell is None else samples_per_cell
-        keys = np.random.SeedSequence([self.seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
+        keys = self._keys.get(resolution)
+        if keys is None:
+            keys = np.random.SeedSequence([self.seed, int(round(resolution * 1e6))]).generate_state(2, np.uint64)
+            self._keys[resolution] = keys
         return ScanSamples(
             self.occupied.at(resolution, spc, keys[0]),
             self.free.at(resolution, spc, keys[1]),

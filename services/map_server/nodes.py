@@ -126,6 +126,12 @@ class Posed(NamedTuple):
     pose: Pose  # node frame -> world
     samples_per_cell: float | None = None  # what a tile counts it at; None: the map's (tiles.py, under load)
 
+    def counted_with(self, samples_per_cell: float | None) -> Posed:
+        """The node as a tile counts it with `samples_per_cell` (None: the map's); itself if so already."""
+        if samples_per_cell == self.samples_per_cell:
+            return self
+        return Posed(self.key, self.stamp, self.node, self.pose, samples_per_cell)
+
 
 @dataclass
 class Robot:

@@ -377,7 +377,7 @@ class TileCache:
 
     def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed], samples_per_cell: float | None) -> None:
         """Counts of every node in `reaching`, replacing what the tile held."""
-        counted = [posed._replace(samples_per_cell=samples_per_cell) for posed in reaching.values()]
+        counted = [posed.counted_with(samples_per_cell) for posed in reaching.values()]
         if counted:
             tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [])
         else:
@@ -400,7 +400,7 @@ class TileCache:
         """
         held, spc = tile.held, samples_per_cell
         moved = {k: held[k] for k, now in changed.items() if now is None and k in held}  # it left the tile
-        new = [now._replace(samples_per_cell=spc) for k, now in changed.items() if now is not None and k not in held]
+        new = [now.counted_with(spc) for k, now in changed.items() if now is not None and k not in held]
         reposed = [
             (held[k], now) for k, now in changed.items() if now is not None and k in held and now.stamp != held[k].stamp
         ]
@@ -418,7 +418,7 @@ class TileCache:
             )
             for before, after in compress(reposed, far):
                 moved[before.key] = before
-                new.append(after._replace(samples_per_cell=spc))
+                new.append(after.counted_with(spc))
             # the others stay counted at the pose held, within the tolerance of where they stand now
         for k, now in refined.items():  # taken out as counted, counted again with every sample
             if k not in moved and k in held:
@@ -433,7 +433,7 @@ class TileCache:
             tile.hits += hits
             tile.misses += misses
         else:
-            kept = [posed._replace(samples_per_cell=spc) for k, posed in held.items() if k not in moved]
+            kept = [posed.counted_with(spc) for k, posed in held.items() if k not in moved]
             tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [])
             held.update((posed.key, posed) for posed in kept)
         for k in moved:
