@@ -18,6 +18,7 @@ import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
 from gmm_core.occupancy import DEFAULT_PRIOR
+from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
 
@@ -84,10 +85,17 @@ class FleetMap:
         """Hold each (message, wire size, raw bytes or None) of an ingest batch; whether each was new."""
         return self.add_entries([ScanEntry.of(*scan) for scan in scans])
 
-    def add_entries(self, entries: Sequence[ScanEntry]) -> list[bool]:
-        """Hold each scan of a batch as the node store keeps it (a restart reads them so); whether each was new."""
+    def add_entries(self, entries: Sequence[ScanEntry], models: Sequence[ScanModel] | None = None) -> list[bool]:
+        """Hold each scan of a batch as the node store keeps it (a restart reads them so); whether each
+        was new. `models`: the entries' models where the caller decoded them (ingest): the new nodes'
+        samples are made ready from them, so no tile decodes them again from the store."""
         with self._lock:
-            return self._nodes.add_many(entries)
+            new = self._nodes.add_many(entries)
+        if models is not None:
+            for entry, model, added in zip(entries, models, new):
+                if added:
+                    self._samples.prime(NodeKey(entry.robot, entry.node), scan_seed(entry.robot, entry.node), model)
+        return new
 
     def apply_poses(self, update: PoseGraphUpdate) -> bool:
         """Re-pose nodes (Eq. 2 at query time), node by node: a listed node takes the update's pose

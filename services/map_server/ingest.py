@@ -247,7 +247,7 @@ class Ingest:
             return
         entries = [ScanEntry.of(m, len(raw), raw) for m, raw in scans]  # what the store and the map keep
         new = state.store.put_scans(scans, entries)  # committed: from here on they may be acknowledged
-        state.fleet_map.add_entries(entries)  # a held correction applies as it lands
+        state.fleet_map.add_entries(entries, [m.model for m, _ in scans])  # a held correction applies as it lands
         acks: dict[str, dict[int, None]] = defaultdict(dict)  # per robot, each node once, in order
         for (message, payload), added in zip(scans, new):
             if added:

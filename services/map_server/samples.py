@@ -68,10 +68,26 @@ class SampleCache:
                 added = _nbytes(samples)
                 held.nbytes += added
                 self.bytes_held += added
-            while self.bytes_held > SAMPLE_CACHE_BYTES and len(self._entries) > 1:
-                _, old = self._entries.popitem(last=False)
-                self.bytes_held -= old.nbytes
+            self._evict()
         return samples
+
+    def prime(self, key: NodeKey, seed: int, model: ScanModel) -> None:
+        """Make node `key` ready to sample from its model at hand (ingest decoded it to check it), so
+        the first tile to trace it neither reads nor decodes it again."""
+        entry = _Entry(ScanSampler.of(model, seed, self.samples_per_cell))
+        entry.nbytes = entry.sampler.nbytes
+        with self._lock:
+            if key in self._entries:
+                return
+            self._entries[key] = entry
+            self.bytes_held += entry.nbytes
+            self._evict()
+
+    def _evict(self) -> None:
+        """Drop the least recently used nodes over SAMPLE_CACHE_BYTES (under the lock)."""
+        while self.bytes_held > SAMPLE_CACHE_BYTES and len(self._entries) > 1:
+            _, old = self._entries.popitem(last=False)
+            self.bytes_held -= old.nbytes
 
     def model(self, node: Node) -> ScanModel:
         """The node's scan model in its node frame, never refitted: held, or decoded from its bytes

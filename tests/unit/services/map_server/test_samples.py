@@ -65,6 +65,22 @@ def test_nodes_that_hold_nothing_are_read_from_the_store(messages, tmp_path):
     store.close()
 
 
+def test_a_node_primed_at_ingest_is_sampled_without_reading_the_store(messages):
+    """Ingest decoded the model to check it: primed with it, the cache never reads the node's bytes,
+    and draws what it would have drawn from them (FleetMap.add_entries with models)."""
+
+    def unread(key):
+        raise AssertionError(f"read {key} from the store")
+
+    cache = SampleCache(4.0, unread)
+    nodes = held_nodes(messages, hold_models=False)
+    for node, message in zip(nodes, messages):
+        cache.prime(node.key, node.seed, message.model)
+    for node, message in zip(nodes, messages):
+        for resolution in RESOLUTIONS:
+            assert_same(cache.samples(node, resolution), scan_samples(message.model, resolution, node.seed, 4.0))
+
+
 def test_the_cache_holds_at_most_its_bytes_and_evicts_the_least_recent(messages, monkeypatch):
     cache = SampleCache(4.0)
     nodes = held_nodes(messages)
