@@ -163,8 +163,8 @@ class RosMapPublisher:
                 log.exception("publishing the map on %s failed", self.topic)
 
     def publish_grid(self) -> bool:
-        """Publish the map; whether the state published was up to date (else it was a previous one,
-        at most tiles.MAX_STALE_S old, served while the tracers were busy)."""
+        """Publish the map; whether the state published was up to date with every sample (else it was a
+        previous one, at most tiles.MAX_STALE_S old, or one thinned, served while the tracers were busy)."""
         extent = self.fleet_map.extent()
         if extent is None:
             return True
@@ -186,7 +186,7 @@ class RosMapPublisher:
         message = t[OCCUPANCY_GRID](header=header, info=info, data=grid_cells(prob))
         payload = wire.encode(message, OCCUPANCY_GRID, ros.distro)
         self._grid_publisher.put(payload, attachment=self._attachment(self._grid_gid))
-        return answer.age == 0
+        return answer.age == 0 and answer.samples_per_cell == self.fleet_map.samples_per_cell  # else again, refined
 
     def publish_trajectories(self) -> None:
         t, now = self.store.types, time.time()

@@ -44,9 +44,10 @@ def grid_of(intel) -> Grid:
 
 
 def served(hport: int, grid: Grid) -> np.ndarray:
-    """The HTTP tile once it is up to date (X-Map-Age 0: busy tracers may serve a previous state)."""
+    """The HTTP tile with every change and every sample (max_age 0: the /map publisher may keep the
+    tracers busy, and an update then thins its samples), once up to date (X-Map-Age 0)."""
     bbox = ",".join(repr(float(v)) for v in (*grid.origin, *grid.upper))
-    url = f"http://127.0.0.1:{hport}/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy"
+    url = f"http://127.0.0.1:{hport}/v1/occupancy?bbox={bbox}&resolution={RESOLUTION}&format=npy&max_age=0"
 
     def current():
         status, headers, body = get(url)
