@@ -344,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
         "server.busy_samples_per_cell",
         type=float,
         metavar="N",
-        help="Monte-Carlo samples per cell of tile updates begun while every tracer is busy, refined once they are "
+        help="Monte-Carlo samples per cell of tile updates begun while any tracer has work, refined once they are "
         "idle (0: always the reconstruction's; default 1)",
     )
     setting(

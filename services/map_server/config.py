@@ -60,7 +60,7 @@ class ServerConfig:
     synchronous: str = "normal"  # one of SYNCHRONOUS
     robot_quota_mb: float = 512.0  # MiB of stored scan bytes per robot; 0: no quota
     trace_threads: int | None = None  # tracer threads of the fleet map; None: one per core
-    # Monte-Carlo samples per cell of the nodes a tile update begun while every tracer is busy traces
+    # Monte-Carlo samples per cell of the nodes a tile update begun while any tracer has work traces
     # (tiles.py): a quarter of the cost at 1 against the default 4, with more noise, refined once the
     # tracers are idle; 0: every update with the reconstruction's samples per cell.
     busy_samples_per_cell: float = 1.0

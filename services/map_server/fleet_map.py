@@ -48,7 +48,7 @@ class FleetMap:
     ):
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
         their models nor their bytes (a server keeps a shift's scans: nodes.py).
-        busy_samples_per_cell: what tile updates begun while every tracer is busy trace new and moved
+        busy_samples_per_cell: what tile updates begun while any tracer has work trace new and moved
         nodes with (tiles.py); None: always `samples_per_cell`."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())

@@ -131,7 +131,7 @@ class TileCache:
         samples_per_cell: float,
         busy_samples_per_cell: float | None = None,
     ):
-        """busy_samples_per_cell: what updates begun while every tracer is busy count new and moved
+        """busy_samples_per_cell: what updates begun while any tracer has work count new and moved
         nodes with; None (or not below `samples_per_cell`, the map's): always the map's."""
         self._lock = lock
         self._nodes = nodes
