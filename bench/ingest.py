@@ -8,7 +8,7 @@ viewer's tiles of the log's map over HTTP meanwhile (as `gmmap sim --http-client
 server's capacity under tile load, which issue 16 wants at least twice the 200 scans/s of its
 20-robot run. Usage:
 
-    .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full] [--http-clients 32]
+    .venv/bin/python bench/ingest.py [--robots 6] [--synchronous normal|full] [--http-clients 32] [--trace-processes]
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ def main() -> int:
     parser.add_argument("--robots", type=int, default=6)
     parser.add_argument("--synchronous", choices=["normal", "full"], default="normal")
     parser.add_argument("--http-clients", type=int, default=0, help="clients fetching tiles meanwhile")
+    parser.add_argument("--trace-processes", action="store_true", help="the server traces in tracer processes")
     args = parser.parse_args()
 
     scans = list(read_scans(LOG))
@@ -75,6 +76,7 @@ def main() -> int:
                 data,
                 "--synchronous",
                 args.synchronous,
+                *(["--trace-processes"] if args.trace_processes else []),
             ],
             cwd=ROOT,
             stderr=subprocess.PIPE,

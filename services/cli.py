@@ -340,6 +340,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     setting(
         p,
+        "--trace-processes",
+        "server.trace_processes",
+        action="store_true",
+        help="trace tiles in a process per tracer thread, not sharing the server's interpreter lock (for servers "
+        "with more than 2 cores; each process takes ~150 MiB and a sample cache of its own)",
+    )
+    setting(
+        p,
         "--busy-samples-per-cell",
         "server.busy_samples_per_cell",
         type=float,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import signal
+import sys
 
 
 def cpu_cores() -> int:
@@ -30,3 +32,21 @@ def release_free_memory() -> bool:
     the freed pages in its per-thread arenas, so without this its RSS keeps the high-water mark of
     each arena rather than what it holds."""
     return bool(_MALLOC_TRIM is not None and _MALLOC_TRIM(0) is not None)
+
+
+def die_with_parent(parent: int) -> None:
+    """In a child (before exec, or first thing in a spawned process): SIGTERM when the parent dies,
+    even by SIGKILL (Linux PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no
+    server tracing on and no tile client asking a server that is gone, and a killed server no
+    tracer process. `parent`: the pid that started the child; one that died before the request
+    took hold (a child scheduled late under load) is never signalled for, so the child ends at once.
+    The signal follows the thread that started the child, not the process: start it from a thread
+    that lives as long as the child should."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+PR_SET_PDEATHSIG = 1

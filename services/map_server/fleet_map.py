@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Collection, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -45,18 +46,24 @@ class FleetMap:
         trace_threads: int | None = None,
         busy_samples_per_cell: float | None = None,
         stored_bytes: Callable[[NodeKey], bytes] | None = None,
+        trace_store: Path | None = None,
     ):
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
         their models nor their bytes (a server keeps a shift's scans: nodes.py).
         busy_samples_per_cell: what tile updates begun while any tracer has work trace new and moved
-        nodes with (tiles.py); None: always `samples_per_cell`."""
+        nodes with (tiles.py); None: always `samples_per_cell`.
+        trace_store: the file of the store `stored_bytes` reads, to trace in a process per tracer
+        thread reading the nodes from it (tracers.py); None: in the tracer threads."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell
         self.prior = prior
         self._lock = threading.RLock()
         self._samples = SampleCache(samples_per_cell, stored_bytes)
-        self._tracers = TracerPool(self.trace_threads, self._samples)
+        self._tracers = TracerPool(
+            self.trace_threads, self._samples, None if trace_store is None else (Path(trace_store), fleet)
+        )
+        self._prime = trace_store is None  # tracer processes keep samplers of their own
         self._nodes = NodeStore(lambda lo, hi: self._tiles.mark_stale(lo, hi), hold_models=stored_bytes is None)
         self._tiles = TileCache(self._lock, self._nodes, self._tracers, prior, samples_per_cell, busy_samples_per_cell)
 
@@ -91,7 +98,7 @@ class FleetMap:
         samples are made ready from them, so no tile decodes them again from the store."""
         with self._lock:
             new = self._nodes.add_many(entries)
-        if models is not None:
+        if models is not None and self._prime:
             for entry, model, added in zip(entries, models, new):
                 if added:
                     self._samples.prime(NodeKey(entry.robot, entry.node), scan_seed(entry.robot, entry.node), model)

@@ -219,6 +219,7 @@ def run_server(
         trace_threads=options.trace_threads,
         busy_samples_per_cell=options.busy_samples_per_cell or None,
         stored_bytes=store.scan_reader(options.fleet),
+        trace_store=store.path if options.trace_processes else None,
     )
     state = ServerState(options.fleet, fleet_map, store)
     zenoh_side: ZenohSide | None = None

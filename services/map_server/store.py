@@ -238,24 +238,8 @@ class Store:
             return {node for (node,) in rows}
 
     def scan_reader(self, fleet: str) -> Callable[[NodeKey], bytes]:
-        """A scan's bytes by (robot, node), read from any thread (a map server's nodes hold none:
-        nodes.py): each thread reads on a connection of its own, which in WAL mode never waits for
-        ingest's commits, so a tracer drawing a node's samples does not queue behind the writer."""
-        local = threading.local()
-        uri = f"{self.path.resolve().as_uri()}?mode=ro"
-
-        def read(key: NodeKey) -> bytes:
-            db = getattr(local, "db", None)
-            if db is None:
-                db = local.db = sqlite3.connect(uri, uri=True, check_same_thread=False)
-            row = db.execute(
-                "SELECT raw FROM scans WHERE fleet = ? AND robot = ? AND node = ?", (fleet, key.robot, key.node)
-            ).fetchone()
-            if row is None:
-                raise LookupError(f"scan {key.robot}/{key.node} of fleet {fleet!r} is not in the store {self.path}")
-            return row[0]
-
-        return read
+        """scan_reader of this store's file."""
+        return scan_reader(self.path, fleet)
 
     def scan_bytes(self, fleet: str, robot: str, node: int) -> bytes | None:
         with self._lock:
@@ -375,3 +359,25 @@ def scan_entries(rows: Sequence[tuple]) -> list[ScanEntry]:
             robot, node, raw, size, _, components = rows[i]
             entries[i] = ScanEntry(robot, node, pose, v[2 * d : 3 * d], v[:d], v[d : 2 * d], components, size, raw)
     return entries  # type: ignore[return-value]
+
+
+def scan_reader(path: Path, fleet: str) -> Callable[[NodeKey], bytes]:
+    """A scan's bytes by (robot, node) from the store file `path`, read from any thread or process
+    (a map server's nodes hold none: nodes.py; its tracer processes read them too): each thread
+    reads on a read-only connection of its own, which in WAL mode never waits for ingest's commits,
+    so a tracer drawing a node's samples does not queue behind the writer."""
+    local = threading.local()
+    uri = f"{Path(path).resolve().as_uri()}?mode=ro"
+
+    def read(key: NodeKey) -> bytes:
+        db = getattr(local, "db", None)
+        if db is None:
+            db = local.db = sqlite3.connect(uri, uri=True, check_same_thread=False)
+        row = db.execute(
+            "SELECT raw FROM scans WHERE fleet = ? AND robot = ? AND node = ?", (fleet, key.robot, key.node)
+        ).fetchone()
+        if row is None:
+            raise LookupError(f"scan {key.robot}/{key.node} of fleet {fleet!r} is not in the store {path}")
+        return row[0]
+
+    return read

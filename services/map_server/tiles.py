@@ -264,8 +264,10 @@ class TileCache:
             nodes = self._nodes.reaching(tile.grid, tile.robots)
         else:
             nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
-        thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
-        refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)} if full and not afresh else {}
+        refined = {}
+        if full and tile.thinned and not afresh:
+            thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
+            refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)}
         tile.dirty_since = None  # from here on, changes are left for the next update
         return afresh, nodes, changes, seen, first, samples_per_cell, refined
 
@@ -364,8 +366,8 @@ class TileCache:
         return self._answer(tile, tile.prob, age, "stale")
 
     def _answer(self, tile: Tile, prob: np.ndarray, age: float, kind: str) -> TileAnswer:
-        thinned = tile.thinned and self.busy_samples_per_cell is not None
-        return TileAnswer(prob, age, kind, self.busy_samples_per_cell if thinned else self.samples_per_cell)
+        # A tile holds thinned nodes only where busy_samples_per_cell is set.
+        return TileAnswer(prob, age, kind, self.busy_samples_per_cell if tile.thinned else self.samples_per_cell)
 
     def _admit(self, may_shed: bool) -> None:
         """Raise TracersSaturated (counted) when `may_shed` and the tracers are saturated."""

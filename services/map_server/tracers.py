@@ -9,6 +9,10 @@ kernel's scheduler then gives the ingest and HTTP threads their CPU first, and t
 rest, where ingest pausing them (`ingest_first`) alone left a core idle between the pauses. Nice
 +10 was tried before tiles were shed: under a flood of HTTP requests they starved; +5 still gives
 a tracer a third of a core beside a busy thread at 0 (docs/RELIABILITY.md).
+
+With `server.trace_processes` (a server with a store) each tracer thread hands its parts to a
+process of its own and waits (trace_workers.py), so the tracers' Python no longer takes turns with
+ingest and HTTP on one interpreter lock; otherwise the threads trace themselves.
 """
 
 from __future__ import annotations
@@ -20,14 +24,15 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from gmm_core import Grid
-from gmm_core.scan_trace import GridCounts
 
 from .nodes import Posed
 from .samples import SampleCache
+from .trace_workers import Traced, TraceWorker, WorkerGone, trace_nodes
 
 
 class TracingStopped(RuntimeError):
@@ -42,8 +47,6 @@ SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds
 SATURATED_QUEUE_PER_THREAD = 8
 SATURATED_WAIT_S = 1.0
 PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
-# Nodes traced in one call of the kernel: tracers look for ingest and for a stop between batches.
-BATCH_NODES = 32
 TRACER_NICE = 5  # added to a tracer thread's nice value (CFS weight 335 against 1024 at nice 0)
 
 
@@ -103,9 +106,12 @@ class TracerPool:
     ingest thread has the interpreter to itself but for traces already inside a kernel (which
     run outside the GIL). Under overload the tiles slow down and go stale; the store does not."""
 
-    def __init__(self, threads: int, samples: SampleCache):
+    def __init__(self, threads: int, samples: SampleCache, store: tuple[Path, str] | None = None):
+        """store: (the store's file, the fleet) to trace in processes of their own (trace_workers.py),
+        one per tracer thread, reading the nodes' models from it; None: in the threads."""
         self.threads = threads
         self.samples = samples
+        self._store = store
         self._pool = ThreadPoolExecutor(threads, "gmmap-trace", initializer=_lower_priority)
         self._closed = False
         self._ingest_idle = threading.Event()
@@ -114,6 +120,14 @@ class TracerPool:
         self._queued = 0
         self._running = 0
         self._part_seconds: float | None = None  # running mean, from the first part that finished
+        self._local = threading.local()  # a tracer thread's TraceWorker
+        self._workers: list[TraceWorker] = []
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the tracer processes started so far (none when tracing in threads)."""
+        with self._count_lock:
+            return [worker.pid for worker in self._workers]
 
     @contextmanager
     def ingest_first(self):
@@ -135,6 +149,10 @@ class TracerPool:
         self._closed = True
         self._ingest_idle.set()  # a tracer held for ingest sees `_closed` at once
         self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._count_lock:
+            workers, self._workers = self._workers, []
+        for worker in workers:  # a thread waiting on one gets WorkerGone, raised as TracingStopped
+            worker.close()
 
     def trace(self, grid: Grid, plus: list[Posed], minus: list[Posed]) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 hit and miss counts on `grid` of the nodes in `plus` less those in `minus`.
@@ -173,13 +191,42 @@ class TracerPool:
                 self._part_seconds = seconds if mean is None else mean + PART_SECONDS_WEIGHT * (seconds - mean)
 
     def _trace_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
-        counts = GridCounts(grid)
-        for first in range(0, len(entries), BATCH_NODES):
-            self._ingest_idle.wait()
+        if self._store is None:
+            nodes = [(sign, posed.node, posed.pose, posed.samples_per_cell) for sign, posed in entries]
+            return trace_nodes(grid, nodes, self.samples, self._wait_for_ingest)
+        self._wait_for_ingest()
+        nodes = [Traced(sign, p.key, p.node.seed, p.pose, p.samples_per_cell) for sign, p in entries]
+        worker = self._worker()
+        try:
+            return worker.trace(grid, nodes)
+        except WorkerGone:
             if self._closed:
+                raise TracingStopped("the map server is stopping") from None
+            self._forget(worker)  # it died: this thread starts another for its next part
+            raise
+
+    def _wait_for_ingest(self) -> None:
+        """Wait while ingest runs a batch; TracingStopped once the pool is closed."""
+        self._ingest_idle.wait()
+        if self._closed:
+            raise TracingStopped("the map server is stopping")
+
+    def _forget(self, worker: TraceWorker) -> None:
+        self._local.worker = None
+        with self._count_lock:
+            if worker in self._workers:
+                self._workers.remove(worker)
+        worker.close()  # reaped
+
+    def _worker(self) -> TraceWorker:
+        """This tracer thread's process, started at its first part (a server that is never asked for
+        a tile starts none). It dies with the thread, which lives as long as the pool."""
+        worker = getattr(self._local, "worker", None)
+        if worker is None:
+            worker = self._local.worker = TraceWorker(*self._store, self.samples.samples_per_cell, TRACER_NICE)
+            with self._count_lock:
+                self._workers.append(worker)
+            if self._closed:  # closed while it started: close() may have missed it
+                worker.close()
                 raise TracingStopped("the map server is stopping")
-            # Eq. 2: the node-frame samples moved by the node's world pose as they are traced.
-            batch = entries[first : first + BATCH_NODES]
-            samples = [self.samples.samples(posed.node, grid.resolution, posed.samples_per_cell) for _, posed in batch]
-            counts.add_many([(s, posed.pose, sign) for s, (sign, posed) in zip(samples, batch)])
-        return counts.arrays()
+        return worker

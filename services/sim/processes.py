@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ctypes
 import functools
 import os
 import signal
@@ -12,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+from services.host import die_with_parent
 from services.map_server.config import ServerConfig
 from services.sim.fleet import SimSource
 
@@ -23,22 +23,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def die_with_parent(parent: int) -> None:
-    """In a child (before exec, or first thing in a spawned process): SIGTERM when the parent dies,
-    even by SIGKILL (Linux PR_SET_PDEATHSIG), so that a killed `gmmap sim` or `demo` leaves no
-    server tracing on and no tile client asking a server that is gone. `parent`: the pid that
-    started the child; one that died before the request took hold (a child scheduled late under
-    load) is never signalled for, so the child ends at once."""
-    if sys.platform.startswith("linux"):
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-        if os.getppid() != parent:
-            os.kill(os.getpid(), signal.SIGTERM)
-
-
-PR_SET_PDEATHSIG = 1
 
 
 def http_security_args(server: ServerConfig) -> tuple[str, ...]:

@@ -42,8 +42,9 @@ of the `--http-clients`, each fetching random 256 x 256 PNG tiles of the viewer'
 than real time: simulated seconds x cores / CPU seconds of the server and agent processes (the
 harness's relays, tap and map fetches are not counted; the server's answers to them are).
 
-Memory. The server's resident set (VmRSS in /proc), sampled by the harness five times a second
-from when the robots start until they are done; growth = last sample - first.
+Memory. The server's resident set with its tracer processes' (VmRSS in /proc), sampled by the
+harness five times a second from when the robots start until they are done; growth = last sample
+- first.
 """
 
 

@@ -17,10 +17,9 @@ from concurrent.futures import Future, ProcessPoolExecutor
 import numpy as np
 
 from gmm_core import Grid
-from services.host import cpu_cores
+from services.host import cpu_cores, die_with_parent
 from services.sim.byte_models import octomap_stride, replay_robot
 from services.sim.fleet import SimulatedFleet, robot_name
-from services.sim.processes import die_with_parent
 from services.sim.record import RunRecord
 
 # A worker's fleet, graded grid and scans between closures; the events `begin` and `cancelled`.

@@ -19,6 +19,7 @@ import io
 import json
 import math
 import multiprocessing
+import os
 import random
 import resource
 import sqlite3
@@ -35,12 +36,12 @@ import numpy as np
 
 from gmm_core import Grid
 from services.config import GmmapConfig
-from services.host import cpu_cores
+from services.host import cpu_cores, die_with_parent
 from services.http_client import HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
-from services.sim.processes import Processes, die_with_parent, free_port, http_security_args
+from services.sim.processes import Processes, free_port, http_security_args
 from services.sim.record import RunRecord, Snapshot, blocks, evaluation_grid
 from services.sim.relay import CountingRelay
 from services.sim.render import summary, write_report
@@ -144,12 +145,33 @@ class TileClients:
 
 
 def resident_bytes(pid: int) -> int:
-    """Resident memory of a process (Linux), 0 where /proc does not say."""
+    """Resident memory of a process and of its children (a server's tracer processes), Linux; 0 where
+    /proc does not say."""
+    return _vm_rss(pid) + sum(_vm_rss(child) for child in _children(pid))
+
+
+def _vm_rss(pid: int) -> int:
     try:
         with open(f"/proc/{pid}/status") as status:
             return next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmRSS:"))
     except (OSError, StopIteration):
         return 0
+
+
+def _children(pid: int) -> list[int]:
+    """The children of every thread of process `pid` (a tracer thread starts its own process)."""
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    children = []
+    for task in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as listed:
+                children += [int(child) for child in listed.read().split()]
+        except OSError:
+            continue
+    return children
 
 
 def robot_groups(robots: int) -> list[list[int]]:

@@ -1,11 +1,15 @@
-"""SIGTERM to a map server under load: it stops within seconds, and what it acknowledged is stored."""
+"""SIGTERM to a map server under load: it stops within seconds, and what it acknowledged is stored;
+SIGKILL: no tracer process outlives it."""
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
 import urllib.request
+
+import pytest
 
 from gmm_core import fit_scan
 from gmm_core.scan import FitConfig
@@ -14,9 +18,20 @@ from support.net import free_port
 from support.processes import stored_nodes
 
 
-def test_sigterm_under_ingest_and_tile_load_exits_within_five_seconds(procs, session_to, intel_scans, tmp_path):
+@pytest.mark.parametrize(
+    ("tracing", "signum"),
+    [((), signal.SIGTERM), (("--trace-processes",), signal.SIGTERM), (("--trace-processes",), signal.SIGKILL)],
+    ids=["threads-SIGTERM", "processes-SIGTERM", "processes-SIGKILL"],
+)
+def test_a_signal_under_ingest_and_tile_load_ends_the_server_within_five_seconds(
+    procs, session_to, intel_scans, tmp_path, tracing, signum
+):
+    """SIGTERM: a clean exit in under 5 s with what was acknowledged stored; SIGKILL: its tracer
+    processes (--trace-processes) end with it."""
+    if not sys_is_linux():
+        pytest.skip("/proc and PR_SET_PDEATHSIG are Linux's")
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
-    server = procs.server("server", data, zport, hport)
+    server = procs.server("server", data, zport, hport, extra=tracing)
     session = session_to(zport)
     payloads = []
     for scan in intel_scans[:50]:
@@ -45,16 +60,52 @@ def test_sigterm_under_ingest_and_tile_load_exits_within_five_seconds(procs, ses
         worker.start()
     try:
         time.sleep(4)
+        tracers = children(server.pid)
         started = time.monotonic()
-        server.send_signal(signal.SIGTERM)
+        server.send_signal(signum)
         code = server.wait(30)
         took = time.monotonic() - started
+        gone = wait_gone(tracers, 5.0)
     finally:
         stop.set()
         for worker in workers:
             worker.join()
-    assert code == 0 and took < 5, (code, took, procs.log(server)[-2000:])
-    assert stored_nodes(data, "a")  # it stored some before it stopped
+    assert bool(tracers) == bool(tracing), tracers  # a process per tracer thread that traced
+    assert gone, f"tracer processes {tracers} outlived the server"
+    if signum == signal.SIGTERM:
+        assert code == 0 and took < 5, (code, took, procs.log(server)[-2000:])
+        assert stored_nodes(data, "a")  # it stored some before it stopped
+
+
+def sys_is_linux() -> bool:
+    return os.uname().sysname == "Linux"
+
+
+def children(pid: int) -> list[int]:
+    """Child processes of any thread of `pid` (Linux /proc)."""
+    listed = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as kids:
+            listed += [int(kid) for kid in kids.read().split()]
+    return listed
+
+
+def wait_gone(pids: list[int], timeout: float) -> bool:
+    """Whether every process of `pids` ended (or became a zombie: killed, not yet reaped) in `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if all(_ended(pid) for pid in pids):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _ended(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] in "ZX"
+    except OSError:
+        return True
 
 
 _DECODED = {}

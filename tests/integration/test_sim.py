@@ -250,7 +250,7 @@ def alive(pid: int) -> bool:
 def test_a_child_whose_parent_died_before_it_asked_to_die_with_it_ends_at_once():
     """The window PR_SET_PDEATHSIG leaves open: a parent killed between the fork and the child's
     prctl is never signalled for, so the child compares its parent with the pid that started it."""
-    code = "from services.sim.processes import die_with_parent; import time; die_with_parent({}); time.sleep(30)"
+    code = "from services.host import die_with_parent; import time; die_with_parent({}); time.sleep(30)"
     gone = subprocess.run([sys.executable, "-c", code.format(1)], env=ENV, timeout=60)  # its parent is not pid 1
     assert gone.returncode == -signal.SIGTERM
     kept = subprocess.Popen([sys.executable, "-c", code.format("__import__('os').getppid()")], env=ENV)

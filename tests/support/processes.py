@@ -35,9 +35,13 @@ class TestProcesses(Processes):
     def ready(self, proc: subprocess.Popen, banner: str) -> subprocess.Popen:
         return self.wait_ready(self.names[proc], banner)
 
-    def server(self, name: str, data: Path, zport: int, hport: int, *zenoh: str) -> subprocess.Popen:
-        """A ready map server on HTTP port `hport`, listening on `zport` unless `zenoh` options say otherwise."""
-        return super().server(None if zenoh else zport, f"127.0.0.1:{hport}", data, "default", *zenoh, name=name)
+    def server(
+        self, name: str, data: Path, zport: int, hport: int, *zenoh: str, extra: tuple[str, ...] = ()
+    ) -> subprocess.Popen:
+        """A ready map server on HTTP port `hport`, listening on `zport` unless `zenoh` options say otherwise;
+        `extra`: more `gmmap server` options."""
+        zenoh_port = None if zenoh else zport
+        return super().server(zenoh_port, f"127.0.0.1:{hport}", data, "default", *zenoh, *extra, name=name)
 
     def agent(self, robot: str, zport: int, data_dir: Path, *extra: str) -> subprocess.Popen:
         """Robot a or b replaying its half of the Intel log (raw scans, corrected poses) to `zport`;
