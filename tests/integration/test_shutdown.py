@@ -14,7 +14,7 @@ import pytest
 from gmm_core import fit_scan
 from gmm_core.scan import FitConfig
 from protocol import ScanMessage, encode, scan_key
-from support.net import free_port
+from support.net import free_port, wait_for
 from support.processes import stored_nodes
 
 
@@ -60,6 +60,8 @@ def test_a_signal_under_ingest_and_tile_load_ends_the_server_within_five_seconds
         worker.start()
     try:
         time.sleep(4)
+        if tracing:  # a tracer thread starts its process at its first part, which may wait behind ingest
+            wait_for(lambda: children(server.pid), 60, "a tracer process")
         tracers = children(server.pid)
         started = time.monotonic()
         server.send_signal(signum)

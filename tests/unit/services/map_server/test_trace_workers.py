@@ -16,8 +16,8 @@ from services.map_server.nodes import NodeKey
 from services.map_server.store import Store
 from services.map_server.trace_workers import BATCH_NODES, Traced, TraceWorker
 from services.map_server.tracers import TRACER_NICE, TracingStopped
-from tests.support.fuzz import scan_message
-from tests.support.net import wait_for
+from support.fuzz import scan_message
+from support.net import wait_for
 
 GRID = Grid(np.array([-30.0, -30.0]), 0.25, (240, 240))
 
