@@ -344,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
         "server.trace_processes",
         action="store_true",
         help="trace tiles in a process per tracer thread, not sharing the server's interpreter lock (for servers "
-        "with more than 2 cores; each process takes ~150 MiB and a sample cache of its own)",
+        "with more than 2 cores; each process takes about 300 MiB with its own sample cache)",
     )
     setting(
         p,

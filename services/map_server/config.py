@@ -62,7 +62,7 @@ class ServerConfig:
     trace_threads: int | None = None  # tracer threads of the fleet map; None: one per core
     # Trace in a process per tracer thread (trace_workers.py) instead of in the server's threads, which
     # share its interpreter lock with ingest and HTTP: for a server with more cores than that lock lets
-    # one process use (about 1.2 measured); each process costs ~150 MiB and a sample cache of its own.
+    # one process use (about 1.2 measured); each process costs about 300 MiB with its own sample cache.
     trace_processes: bool = False
     # Monte-Carlo samples per cell of the nodes a tile update begun while any tracer has work traces
     # (tiles.py): a quarter of the cost at 1 against the default 4, with more noise, refined once the

@@ -25,7 +25,6 @@ import os
 import socket
 import subprocess
 import sys
-import threading
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -43,7 +42,6 @@ from .store import scan_reader
 
 # Nodes traced in one call of the kernel: a thread looks for ingest and for a stop between batches.
 BATCH_NODES = 32
-START_TIMEOUT_S = 60.0  # a worker's first answer: imports and numba's cached kernels, seconds
 
 
 class Traced(NamedTuple):
@@ -94,7 +92,6 @@ class TraceWorker:
         )
         theirs.close()
         self._conn = Connection(ours.detach())
-        self._lock = threading.Lock()
 
     @property
     def pid(self) -> int:
@@ -102,12 +99,11 @@ class TraceWorker:
 
     def trace(self, grid: Grid, nodes: Sequence[Traced]) -> tuple[np.ndarray, np.ndarray]:
         """(hits, misses) of `nodes` on `grid`, traced by the process."""
-        with self._lock:
-            try:
-                self._conn.send((grid, list(nodes)))
-                reply = self._conn.recv()
-            except (EOFError, OSError) as error:
-                raise WorkerGone(f"tracer process {self.pid} ended: {error or 'its pipe closed'}") from None
+        try:
+            self._conn.send((grid, list(nodes)))
+            reply = self._conn.recv()
+        except (EOFError, OSError) as error:
+            raise WorkerGone(f"tracer process {self.pid} ended: {error or 'its pipe closed'}") from None
         if reply[0] == "error":
             raise RuntimeError(f"tracer process {self.pid}: {reply[1]}")
         return reply[1], reply[2]
