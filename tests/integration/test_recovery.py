@@ -67,6 +67,9 @@ def test_agent_killed_and_restarted_resumes_from_its_outbox(procs, session_to, d
     options = ("--rate", RATE, "--resend", "0.5", "--timeout", "60")
     agents = {r: procs.agent(r, zport, data_dir, *options) for r in HALVES}
     wait_for(lambda: len(stored_nodes(data, "a")) >= 100, 60, "100 stored scans of a", interval=0.02)
+    # Stored is not yet acknowledged: on a loaded machine the Acks reach the outbox later (a fresh-clone
+    # run killed the agent with none recorded, and the test had nothing to check).
+    wait_for(lambda: len(acked_nodes(tmp_path / "outbox-a.db")) >= 50, 60, "50 acknowledged scans of a")
 
     agents["a"].send_signal(signal.SIGKILL)
     agents["a"].wait()
