@@ -19,7 +19,6 @@ import io
 import json
 import math
 import multiprocessing
-import os
 import random
 import resource
 import sqlite3
@@ -36,7 +35,7 @@ import numpy as np
 
 from gmm_core import Grid
 from services.config import GmmapConfig
-from services.host import cpu_cores, die_with_parent
+from services.host import child_pids, cpu_cores, die_with_parent
 from services.http_client import HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
@@ -147,7 +146,7 @@ class TileClients:
 def resident_bytes(pid: int) -> int:
     """Resident memory of a process and of its children (a server's tracer processes), Linux; 0 where
     /proc does not say."""
-    return _vm_rss(pid) + sum(_vm_rss(child) for child in _children(pid))
+    return _vm_rss(pid) + sum(_vm_rss(child) for child in child_pids(pid))
 
 
 def _vm_rss(pid: int) -> int:
@@ -156,22 +155,6 @@ def _vm_rss(pid: int) -> int:
             return next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmRSS:"))
     except (OSError, StopIteration):
         return 0
-
-
-def _children(pid: int) -> list[int]:
-    """The children of every thread of process `pid` (a tracer thread starts its own process)."""
-    try:
-        tasks = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        return []
-    children = []
-    for task in tasks:
-        try:
-            with open(f"/proc/{pid}/task/{task}/children") as listed:
-                children += [int(child) for child in listed.read().split()]
-        except OSError:
-            continue
-    return children
 
 
 def robot_groups(robots: int) -> list[list[int]]:

@@ -14,6 +14,7 @@ import pytest
 from gmm_core import fit_scan
 from gmm_core.scan import FitConfig
 from protocol import ScanMessage, encode, scan_key
+from services.host import child_pids
 from support.net import free_port, wait_for
 from support.processes import stored_nodes
 
@@ -61,8 +62,8 @@ def test_a_signal_under_ingest_and_tile_load_ends_the_server_within_five_seconds
     try:
         time.sleep(4)
         if tracing:  # a tracer thread starts its process at its first part, which may wait behind ingest
-            wait_for(lambda: children(server.pid), 60, "a tracer process")
-        tracers = children(server.pid)
+            wait_for(lambda: child_pids(server.pid), 60, "a tracer process")
+        tracers = child_pids(server.pid)
         started = time.monotonic()
         server.send_signal(signum)
         code = server.wait(30)
@@ -81,15 +82,6 @@ def test_a_signal_under_ingest_and_tile_load_ends_the_server_within_five_seconds
 
 def sys_is_linux() -> bool:
     return os.uname().sysname == "Linux"
-
-
-def children(pid: int) -> list[int]:
-    """Child processes of any thread of `pid` (Linux /proc)."""
-    listed = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as kids:
-            listed += [int(kid) for kid in kids.read().split()]
-    return listed
 
 
 def wait_gone(pids: list[int], timeout: float) -> bool:
