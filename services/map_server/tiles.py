@@ -28,7 +28,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -285,7 +285,7 @@ class TileCache:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
                     tile.updated.notify_all()
                 raise
-            prob = map_estimate(tile.hits.astype(np.float32), tile.misses.astype(np.float32), self.prior)
+            prob = map_estimate(tile.hits, tile.misses, self.prior)
             prob.setflags(write=False)
             with self._lock:
                 # A change after the snapshot bumped `changes` (and set `dirty_since`): the next
@@ -434,14 +434,15 @@ class TileCache:
             hits, misses = self._tracers.trace(tile.grid, new, list(moved.values()))  # moved: at their old pose
             tile.hits += hits
             tile.misses += misses
+            tile.thinned += _thinned(new) - _thinned(moved.values())
         else:
             kept = [posed.counted_with(spc) for k, posed in held.items() if k not in moved]
             tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [])
             held.update((posed.key, posed) for posed in kept)
+            tile.thinned = _thinned(kept) + _thinned(new)
         for k in moved:
             del held[k]
         held.update((posed.key, posed) for posed in new)
-        tile.thinned = sum(posed.samples_per_cell is not None for posed in held.values())
 
     def _evict(self) -> None:
         """Drop least recently used tiles over TILE_CACHE_BYTES (always keeping the newest)."""
@@ -465,3 +466,9 @@ class TileCache:
                 "tiles": len(self._tiles),
                 "tile_bytes": self._bytes,
             }
+
+
+def _thinned(counted: Iterable[Posed]) -> int:
+    """How many of `counted` hold fewer samples per cell than the map's (a tile keeps the count as
+    it goes: summing it over every node held cost a busy tile's update more than its estimate)."""
+    return sum(posed.samples_per_cell is not None for posed in counted)

@@ -55,7 +55,7 @@ def offline_maps(record: RunRecord, stored_at: list[dict[str, int]], progress) -
                     counts.add(samples[robot, node], poses[name](robot, node, message))
                 added[robot] = max(added[robot], count)
             hits, misses = counts.arrays()
-            out[name][j][place] = map_estimate(hits.astype(np.float32), misses.astype(np.float32), r.prior)
+            out[name][j][place] = map_estimate(hits, misses, r.prior)
 
     # The tracer runs outside the GIL: the maps are rebuilt on threads of their own, box by box.
     with ThreadPoolExecutor(min(len(poses), cpu_cores())) as pool:

@@ -18,6 +18,24 @@ def test_map_estimate_closed_form():
         map_estimate(hits, misses, prior=0.0)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("shape", [(7,), (33, 65), (5, 9, 4)])
+def test_map_estimate_matches_numpy(dtype, shape):
+    """The cell-by-cell kernel gives the bits of numpy's float32 expression of Eq. 11."""
+    rng = np.random.default_rng(sum(shape))
+    hits = (rng.exponential(2.0, shape) * (rng.random(shape) < 0.6)).astype(dtype)
+    misses = (rng.exponential(5.0, shape) * (rng.random(shape) < 0.7)).astype(dtype)
+    for prior in (0.2, 1.0, 0.013):
+        h, m = hits.astype(np.float32), misses.astype(np.float32)
+        reference = (h + prior) / (h + m + 2 * prior)
+        p = map_estimate(hits, misses, prior)
+        assert p.dtype == np.float32 and p.shape == shape
+        assert np.array_equal(p, reference)
+    assert np.array_equal(map_estimate(hits.T, misses.T), map_estimate(hits, misses).T)  # not contiguous
+    with pytest.raises(ValueError, match="misses"):
+        map_estimate(hits, misses[:1])
+
+
 def test_classify_dead_band():
     p = np.array([0.05, 0.2, 0.5, 0.8, 0.95])
     # sigma^2 = 0.09: thresholds (1 ± 0.8) / 2 = 0.1 and 0.9.
