@@ -27,11 +27,11 @@ def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PR
     if hits.shape != misses.shape:
         raise ValueError(f"misses: shape {misses.shape} differs from the hits' {hits.shape}")
     out = np.empty(hits.shape, np.float32)
-    flat = [
+    h, m = (
         a.reshape(-1) if a.dtype in (np.float32, np.float64) else a.reshape(-1).astype(np.float32)
         for a in (hits, misses)
-    ]
-    _map_estimate(*flat, np.float32(prior), np.float32(2 * prior), out.reshape(-1))
+    )
+    _map_estimate(h, m, np.float32(prior), np.float32(2 * prior), out.reshape(-1))
     return out
 
 
