@@ -470,5 +470,5 @@ class TileCache:
 
 def _thinned(counted: Iterable[Posed]) -> int:
     """How many of `counted` hold fewer samples per cell than the map's (a tile keeps the count as
-    it goes: summing it over every node held cost a busy tile's update more than its estimate)."""
+    it goes: summing it over every node held took 2.6 % of a busy tile's update, docs/BENCHMARKS.md)."""
     return sum(posed.samples_per_cell is not None for posed in counted)

@@ -210,4 +210,4 @@ def offline(messages, update, samples_per_cell: dict[int, float]) -> np.ndarray:
     reaching = fleet._nodes.reaching(GRID, None)
     counted = [posed._replace(samples_per_cell=samples_per_cell.get(key[1])) for key, posed in reaching.items()]
     hits, misses = fleet._tracers.trace(GRID, counted, [])
-    return map_estimate(hits.astype(np.float32), misses.astype(np.float32), fleet.prior)
+    return map_estimate(hits, misses, fleet.prior)
