@@ -10,8 +10,11 @@ is acknowledged before its commit.
 A scan over the quota is answered with a Rejection, not left unanswered: the robot would
 otherwise resend it forever without knowing why.
 
-Ingest comes first: while a batch is processed, the map's tracers wait at their next node
-(FleetMap.ingest_first), so a flood of tile requests slows the tiles, not the store. A scan
+Ingest comes first: while a batch is processed whose oldest message waited in the queue over
+HOLD_TRACERS_AFTER_S, the map's tracers wait at their next node (FleetMap.ingest_first), so a
+flood of tile requests slows the tiles, not the store. A server that keeps up does not hold them:
+at 200 scans/s the ingest thread is busy most of the time, and holding the tracers for every batch
+left them a few percent of the time to trace (docs/RELIABILITY.md, "Seventh session"). A scan
 that waits in the queue longer than QUEUED_ACK_S is announced to its robot in an Ack's `queued`
 list every QUEUED_ACK_S: received, not lost, so the robot holds it rather than resends it.
 """
@@ -25,6 +28,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from contextlib import nullcontext
 
 from protocol import Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode, parse_key
 
@@ -36,6 +40,7 @@ log = logging.getLogger("gmmap.server")
 MAX_BATCH = 512
 QUEUED_ACK_S = 2.0  # s between the Acks that list a robot's scans still waiting in the queue
 QUEUE_LIMIT = 20_000  # a full queue blocks the Zenoh callback: back-pressure instead of loss
+HOLD_TRACERS_AFTER_S = 0.2  # a batch whose oldest message waited this long (s) holds the tracers
 _STOP = object()
 
 
@@ -78,7 +83,7 @@ class Ingest:
     def submit(self, key: str, payload: bytes) -> None:
         if self._deadline == math.inf:  # once stopping, not acknowledged: the robot sends it again
             self._note_waiting(key)
-            self._queue.put((key, payload))
+            self._queue.put((key, payload, time.monotonic()))
 
     @staticmethod
     def _scan_of(key: str) -> tuple[str, int] | None:
@@ -142,10 +147,13 @@ class Ingest:
                     batch.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
-            stop = any(item is _STOP for item in batch) or time.monotonic() > self._deadline
-            items = [item for item in batch if item is not _STOP]
+            now = time.monotonic()
+            stop = any(item is _STOP for item in batch) or now > self._deadline
+            queued = [item for item in batch if item is not _STOP]  # (key, payload, when queued), oldest first
+            items = [(key, payload) for key, payload, _ in queued]
+            behind = bool(queued) and now - queued[0][2] > HOLD_TRACERS_AFTER_S
             try:
-                with self.state.fleet_map.ingest_first():
+                with self.state.fleet_map.ingest_first() if behind else nullcontext():
                     self._process(items)
             except Exception:  # the server keeps serving; the agents resend what was not acked
                 log.exception("ingest batch of %d failed", len(batch))

@@ -13,7 +13,9 @@ Not thread-safe: the FleetMap calls it under its lock.
 
 from __future__ import annotations
 
+import bisect
 import itertools
+import math
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -218,12 +220,14 @@ class ChangeLog:
         self._latest: dict[NodeKey, int] = {}  # key -> position of its latest change, in position order
         self.start = 0
         self.end = 0  # the position the next change will have
+        self._batches: list[tuple[int, float]] = []  # (first position, monotonic time) of each `extend`
 
     def __len__(self) -> int:
         return len(self._latest)
 
     def extend(self, keys: Iterable[NodeKey]) -> None:
         latest = self._latest
+        self._batches.append((self.end, time.monotonic()))
         for key in keys:
             latest.pop(key, None)
             latest[key] = self.end
@@ -242,6 +246,18 @@ class ChangeLog:
             keys.append(key)
         return keys
 
+    def oldest_since(self, position: int, limit: int | None) -> tuple[list[NodeKey], int]:
+        """`since`, but at most the `limit` keys changed longest ago (None: all), and the position up
+        to which they account for every change: `end`, or that of the first change they leave out."""
+        keys = self.since(position)
+        if limit is None or len(keys) <= limit:
+            return keys, self.end
+        return keys[len(keys) - limit :], self._latest[keys[len(keys) - limit - 1]]
+
+    def time_of(self, position: int) -> float:
+        """Monotonic time at which the change at `position` (< end) was logged."""
+        return self._batches[bisect.bisect_right(self._batches, (position, math.inf)) - 1][1]
+
     def drop_before(self, position: int) -> None:
         latest = self._latest
         while latest:
@@ -250,6 +266,9 @@ class ChangeLog:
                 break
             del latest[key]
         self.start = max(self.start, position)
+        first = bisect.bisect_right(self._batches, (self.start, math.inf)) - 1  # the batch holding `start`
+        if first > 0:
+            del self._batches[:first]
 
 
 class NodeStore:
@@ -379,22 +398,23 @@ class NodeStore:
             if wanted is None or key.robot in wanted
         }
 
-    def changed_since(self, position: int, grid: Grid, robots: Sequence[str] | None) -> dict[NodeKey, Posed | None]:
+    def changed_since(
+        self, position: int, grid: Grid, robots: Sequence[str] | None, limit: int | None = None
+    ) -> tuple[dict[NodeKey, Posed | None], int]:
         """Nodes (of all robots or of `robots`) added or moved from change-log `position` on: where
-        they stand now if they can reach `grid`, else None.
+        they stand now if they can reach `grid`, else None; and the log position up to which they
+        account for every change (ChangeLog.oldest_since: at most `limit` nodes, the longest changed).
 
         A tile update costs what changed since the last one, not what the map holds.
         """
-        keys = self.log.since(position)
+        keys, upto = self.log.oldest_since(position, limit)
         if robots is not None:
             wanted = set(robots)
             keys = [k for k in keys if k.robot in wanted]
         if not keys:
-            return {}
-        return {
-            key: self.posed(key) if reaches else None
-            for key, reaches in zip(keys, self._index.meets(keys, grid.origin, grid.upper))
-        }
+            return {}, upto
+        meets = self._index.meets(keys, grid.origin, grid.upper)
+        return {key: self.posed(key) if reaches else None for key, reaches in zip(keys, meets)}, upto
 
     def robot_rows(self) -> list[dict]:
         return [

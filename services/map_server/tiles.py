@@ -7,9 +7,11 @@ new nodes added, moved nodes subtracted at their old pose and added at the new o
 sums of quantised weights (gmm_core.sampling), exact in float64, so an updated tile has the
 bytes a fresh reconstruction would have.
 
-A tile reads the node store's change log from the position it last accounted for; entries every
-cached tile has read are dropped. A tile that the log no longer covers (it was not asked for
-while the log outgrew its limit) is traced afresh on its next query.
+A tile reads the node store's change log from the position it last accounted for, at most
+MAX_UPDATE_NODES changed nodes an update, oldest first; entries every cached tile has read are
+dropped. A tile that the log no longer covers (it was not asked for while the log outgrew its
+limit) is traced afresh on its next query. Grids on the lattice of their resolution, as the
+viewer's tiles are, are windows of one tile per resolution, its layer (`TileCache._tile_for`).
 
 Under load a tile is served older rather than traced more (ingest first): every answer carries the
 age of its state, a previous state is served for at most MAX_STALE_S, and a request that would
@@ -31,7 +33,7 @@ from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import compress, islice
 
 import numpy as np
@@ -61,6 +63,20 @@ BUSY_REPOSE_CELLS = 1.0  # the same in an update with busy tracers, whose fewer 
 # Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
 # is a background update like any other, and one of a whole tile would hold the tracers for seconds.
 REFINE_NODES = 64
+# Nor does an update with idle tracers trace more nodes than this with every sample (unless every change
+# is asked for): a layer's update after loop closures moves thousands, which at 4 samples per cell
+# held the tracers for tens of seconds (docs/RELIABILITY.md, "Seventh session").
+FULL_UPDATE_NODES = 64
+# An update (but one asking for every change) applies at most this many changed nodes, those changed
+# longest ago; the next update goes on from there. An update after loop closures otherwise traces
+# thousands of moved nodes at once, and every request waits for it once the state it replaces is
+# too old to serve (docs/RELIABILITY.md, "Seventh session").
+MAX_UPDATE_NODES = 400
+SLOW_UPDATE_S = 1.0  # an update that took longer is logged (with what it traced)
+# A layer (TileCache._tile_for) holds at most this many cells: 2M, 40 MB with its counts and
+# probabilities; a grid that would grow it further is a tile of its own.
+LAYER_MAX_CELLS = 1 << 21
+LATTICE_TOLERANCE = 1e-6  # cells an origin may be off the lattice and still be on it (decimal metres)
 
 
 _WAIT = object()  # TileCache._cached: wait for the update under way
@@ -211,29 +227,82 @@ class TileCache:
         max_age = min(max_age, MAX_STALE_S)
         deadline = None if patience is None else time.monotonic() + patience
         robots = None if robots is None else tuple(sorted(robots))
-        key = (tuple(grid.origin), grid.resolution, grid.shape, robots)
         with self._lock:
             self._nodes.check_dim(grid)
-            tile = self._tiles.get(key)
-            if tile is None:
-                self._admit(may_shed)
-                # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
-                tile = Tile(
-                    grid,
-                    np.zeros(grid.array_shape),
-                    np.zeros(grid.array_shape),
-                    self._nodes.log.end,
-                    robots=robots,
-                    updated=threading.Condition(self._lock),
-                )
-                self._tiles[key] = tile
-                self._bytes += tile.nbytes
-                self._boxes = None
-                self._evict()
-            self._tiles.move_to_end(key)
-        waited = False
+            tile, window = self._tile_for(grid, robots, may_shed, layered=max_age > 0)
+        answer = self._answer_from(tile, max_age, deadline, may_shed)
+        return answer if window is None else replace(answer, prob=answer.prob[window])
+
+    def _tile_for(
+        self, grid: Grid, robots: tuple[str, ...] | None, may_shed: bool, layered: bool
+    ) -> tuple[Tile, tuple | None]:
+        """The tile that answers `grid` and the window of `grid` in its arrays (None: all of it),
+        made (empty) if need be. Under the map's lock.
+
+        When `layered`, a grid on the lattice of its resolution (origin a whole number of cells from
+        0) is a window of its layer: one tile per resolution and robots covering every such grid
+        asked for, grown to take in a new one while it stays within LAYER_MAX_CELLS. A node then is
+        drawn and traced once for all the viewer's tiles of a resolution, not once per tile it
+        reaches (office, 20 robots: 5.8 of the twelve 0.05 m tiles a node on average;
+        docs/BENCHMARKS.md). Other grids are tiles of their own; so are those asked for with every
+        change (max_age 0, e.g. a graded snapshot), which would make the viewer's whole layer wait
+        for every node to be traced again with every sample."""
+        res, d = grid.resolution, grid.dim
+        cells = grid.origin / res
+        lo = np.rint(cells).astype(np.int64)
+        if layered and LAYER_MAX_CELLS and np.all(np.abs(cells - lo) <= LATTICE_TOLERANCE):
+            key: tuple = ("layer", res, d, robots)
+            hi = lo + np.array(grid.shape)
+            layer = self._tiles.get(key)
+            if layer is not None:
+                layer_lo = np.rint(layer.grid.origin / res).astype(np.int64)
+                layer_hi = layer_lo + np.array(layer.grid.shape)
+                if np.all(lo >= layer_lo) and np.all(hi <= layer_hi):
+                    self._tiles.move_to_end(key)
+                    return layer, _window(lo - layer_lo, grid.shape, layer.grid.shape)
+                lo_union, hi_union = np.minimum(lo, layer_lo), np.maximum(hi, layer_hi)
+            else:
+                lo_union, hi_union = lo, hi
+            if np.prod(hi_union - lo_union) <= LAYER_MAX_CELLS:
+                if layer is not None:  # replaced by a larger layer, traced afresh at its first update
+                    del self._tiles[key]
+                    self._bytes -= layer.nbytes
+                union = Grid(lo_union * res, res, tuple(int(n) for n in hi_union - lo_union))
+                return self._new_tile(key, union, robots, may_shed), _window(lo - lo_union, grid.shape, union.shape)
+        key = (tuple(grid.origin), res, grid.shape, robots)
+        tile = self._tiles.get(key)
+        if tile is None:
+            return self._new_tile(key, grid, robots, may_shed), None
+        self._tiles.move_to_end(key)
+        return tile, None
+
+    def _new_tile(self, key: tuple, grid: Grid, robots: tuple[str, ...] | None, may_shed: bool) -> Tile:
+        """An empty tile cached under `key` (a request that would make one is shed first when it may be)."""
+        self._admit(may_shed)
+        # `seen` pins the change log until the first trace: it counts nothing yet (prob is None).
+        tile = Tile(
+            grid,
+            np.zeros(grid.array_shape),
+            np.zeros(grid.array_shape),
+            self._nodes.log.end,
+            robots=robots,
+            updated=threading.Condition(self._lock),
+        )
+        self._tiles[key] = tile
+        self._bytes += tile.nbytes
+        self._boxes = None
+        self._evict()
+        return tile
+
+    def _answer_from(self, tile: Tile, max_age: float, deadline: float | None, may_shed: bool) -> TileAnswer:
+        """`answer` for the whole of `tile`."""
+        waited, before = False, None
         while True:
             with self._lock:
+                if before is not None and tile.prob is not before and max_age > 0:
+                    # It waited for another request's update: that state, however much of a backlog
+                    # it left (MAX_UPDATE_NODES), rather than a turn at the next update.
+                    return self._answer(tile, tile.prob, _age(tile), "updated")
                 patient = deadline is not None and time.monotonic() < deadline
                 cached = self._cached(tile, max_age, patient, waited)
                 if cached is _WAIT:
@@ -247,33 +316,41 @@ class TileCache:
                     full = max_age <= 0 or self._tracers.load().idle
                     work = self._begin_update(tile, full, refine=None if max_age <= 0 else REFINE_NODES)
                     break
+                before = tile.prob
             with tile.lock:  # another request updates it, and its previous state is too old or absent
                 pass
         return self._update(tile, work)
 
     def _begin_update(self, tile: Tile, full: bool, refine: int | None) -> tuple:
         """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
-        nodes reaching it or those changed since it last read the log, the changes and log position
-        it will account for, whether it is the first trace, the samples per cell of what it traces:
-        None for the map's, which `full` asks for, and then the thinned nodes, at most `refine` (None:
-        all), it traces again with every sample, where they stand now)."""
+        nodes reaching it or those changed since it last read the log (at most MAX_UPDATE_NODES
+        unless `refine` is None), the changes and log position it will account for, whether that
+        leaves later changes out, whether it is the first trace, the samples per cell of what it traces:
+        None for the map's, which `full` asks for (for at most FULL_UPDATE_NODES nodes unless `refine`
+        is None), and then the thinned nodes, at most `refine` (None: all), it traces again with every
+        sample, where they stand now)."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
-        samples_per_cell = None if full else self.busy_samples_per_cell
         afresh = first or tile.seen < self._nodes.log.start
         if afresh:
             nodes = self._nodes.reaching(tile.grid, tile.robots)
         else:
-            nodes = self._nodes.changed_since(tile.seen, tile.grid, tile.robots)
+            limit = None if refine is None else MAX_UPDATE_NODES
+            nodes, seen = self._nodes.changed_since(tile.seen, tile.grid, tile.robots, limit)
+        if refine is not None and len(nodes) > FULL_UPDATE_NODES:
+            full = False  # a large update is thinned even on idle tracers, and refined behind it
+        samples_per_cell = None if full else self.busy_samples_per_cell
         refined = {}
         if full and tile.thinned and not afresh:
             thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
             refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)}
         tile.dirty_since = None  # from here on, changes are left for the next update
-        return afresh, nodes, changes, seen, first, samples_per_cell, refined
+        partial = seen < self._nodes.log.end  # MAX_UPDATE_NODES left changes for the next update
+        return afresh, nodes, changes, seen, partial, first, samples_per_cell, refined
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, first, samples_per_cell, refined = work
+        afresh, nodes, changes, seen, partial, first, samples_per_cell, refined = work
+        start = time.monotonic()
         with _held(tile.lock):
             try:
                 if afresh:
@@ -287,11 +364,21 @@ class TileCache:
                 raise
             prob = map_estimate(tile.hits, tile.misses, self.prior)
             prob.setflags(write=False)
+            seconds = time.monotonic() - start
+            if seconds > SLOW_UPDATE_S:
+                log.warning(
+                    "a tile update took %.1f s: %s, %d nodes (%d refined) at %s samples per cell on %s cells of %g m",
+                    seconds, "afresh" if afresh else "changes", len(nodes), len(refined),
+                    samples_per_cell or self.samples_per_cell, tile.grid.shape, tile.grid.resolution,
+                )  # fmt: skip
             with self._lock:
                 # A change after the snapshot bumped `changes` (and set `dirty_since`): the next
                 # query updates again, and this state has been out of date since that change.
                 tile.prob, tile.prob_at, tile.seen = prob, changes, seen
                 tile.outdated_since = tile.dirty_since
+                if partial:
+                    tile.prob_at = changes - 1  # so it is not up to date ...
+                    tile.outdated_since = self._nodes.log.time_of(seen)  # ... since the first change it lacks
                 tile.updated.notify_all()
                 if first:
                     self._misses += 1
@@ -466,6 +553,14 @@ class TileCache:
                 "tiles": len(self._tiles),
                 "tile_bytes": self._bytes,
             }
+
+
+def _window(offset: np.ndarray, shape: tuple[int, ...], whole: tuple[int, ...]) -> tuple[slice, ...] | None:
+    """Array index of the cells offset .. offset + shape (x, y[, z] order) of a grid of `whole`
+    cells; None when that is all of it."""
+    if not offset.any() and shape == whole:
+        return None
+    return tuple(slice(int(o), int(o) + n) for o, n in reversed(list(zip(offset, shape))))
 
 
 def _thinned(counted: Iterable[Posed]) -> int:

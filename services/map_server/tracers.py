@@ -21,9 +21,11 @@ import math
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -39,8 +41,12 @@ class TracingStopped(RuntimeError):
     """A trace cut off because its pool was closed."""
 
 
-SPLIT_MIN_NODES = 64  # nodes per thread below which an update is not split
-SPLIT_MAX_CELLS = 1 << 22  # nor one whose grid is this large (each thread holds its own counts)
+# A trace is split into parts of at most PART_NODES nodes, and at most all threads but one run its parts
+# at a time: the graded snapshot (every change, every sample: thousands of nodes) otherwise held both
+# threads of a 2-core server for seconds while the viewer's updates waited (docs/RELIABILITY.md,
+# "Seventh session").
+PART_NODES = 256
+SPLIT_MAX_CELLS = 1 << 22  # a trace on a grid this large is one part (each part holds its own counts)
 # Saturated: a new trace would wait behind this many queued parts per tracer thread, or about this
 # long (queued parts x the recent mean part time / threads). The count also bounds a queue whose
 # parts have no measured time yet.
@@ -157,23 +163,29 @@ class TracerPool:
     def trace(self, grid: Grid, plus: list[Posed], minus: list[Posed]) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 hit and miss counts on `grid` of the nodes in `plus` less those in `minus`.
 
-        A large update is split among the threads, each running the one-thread kernel on its
-        share of the nodes (counts are sums of quantised weights, exact in any order, so the
-        split changes no bit).
+        Traced in parts of at most PART_NODES nodes, each by the one-thread kernel, on at most all
+        threads but one at a time, so other traces' parts run between them (counts are sums of
+        quantised weights, exact in any order, so the split changes no bit).
         """
         entries = [(1.0, posed) for posed in plus] + [(-1.0, posed) for posed in minus]
-        parts = min(self.threads, max(1, len(entries) // SPLIT_MIN_NODES))
-        if grid.n_cells > SPLIT_MAX_CELLS:
-            parts = 1
-        with self._count_lock:
-            self._queued += parts
-        shares = [self._pool.submit(self._counted_part, grid, entries[i::parts]) for i in range(parts)]
-        hits, misses = shares[0].result()
-        for share in shares[1:]:
-            h, m = share.result()
+        parts = 1 if grid.n_cells > SPLIT_MAX_CELLS else max(1, -(-len(entries) // PART_NODES))
+        shares = iter([entries[i::parts] for i in range(parts)])
+        running = deque(self._submit(grid, share) for share in islice(shares, max(1, self.threads - 1)))
+        hits, misses = running.popleft().result()
+        while True:
+            share = next(shares, None)
+            if share is not None:  # the next part is queued only once one has finished
+                running.append(self._submit(grid, share))
+            if not running:
+                return hits, misses
+            h, m = running.popleft().result()
             hits += h
             misses += m
-        return hits, misses
+
+    def _submit(self, grid: Grid, entries: list[tuple[float, Posed]]) -> Future:
+        with self._count_lock:
+            self._queued += 1
+        return self._pool.submit(self._counted_part, grid, entries)
 
     def _counted_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
         """_trace_part, counted in the pool's load (queued until it starts, then running)."""

@@ -153,6 +153,7 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     to CHANGE_LOG_LIMIT, and is traced afresh once the log no longer covers it. Every tile, updated
     or retraced, has the bytes of a fresh one."""
     monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: 32, still over one step
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # GRID and corner are tiles of their own
     afresh, trace_afresh = [], TileCache._trace_afresh
 
     def traced_afresh(cache, tile, reaching, samples_per_cell):
@@ -233,7 +234,8 @@ def test_a_patient_request_waits_for_a_slow_update_only_so_long_then_gets_the_pr
     assert fleet.occupancy_answer(GRID, patience=30.0).kind == "fresh"
 
 
-def test_max_age_zero_waits_for_every_change_even_with_a_previous_state_and_busy_tracers(fitted):
+def test_max_age_zero_waits_for_every_change_even_with_a_previous_state_and_busy_tracers(fitted, monkeypatch):
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # GRID's tile is the one max_age 0 asks (never a layer)
     scans, models = fitted
     fleet, before = traced_then_changed(fitted)
     (tile,) = fleet._tiles.values()

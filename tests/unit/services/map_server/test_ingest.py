@@ -82,3 +82,30 @@ def test_tracers_wait_while_a_batch_is_ingested(model):
         threading.Thread(target=lambda: (fleet.counts(grid), done.set()), daemon=True).start()
         assert not done.wait(0.5)
     assert done.wait(10)
+
+
+def test_a_batch_holds_the_tracers_only_when_its_oldest_message_waited(tmp_path, model, monkeypatch):
+    """Ingest holds the tracers for a batch whose oldest message waited over HOLD_TRACERS_AFTER_S in
+    the queue (it is falling behind); a server that keeps up lets them trace."""
+    fleet = FleetMap("default")
+    holds = []
+    hold = fleet.ingest_first
+
+    def counted_hold():
+        holds.append(1)
+        return hold()
+
+    monkeypatch.setattr(fleet, "ingest_first", counted_hold)
+    answers: list[Ack] = []
+    ingest = Ingest(ServerState("default", fleet, Store(tmp_path)), lambda _, raw: answers.append(decode(raw)))
+    ingest.start()
+    try:
+        ingest.submit(scan_key("default", "r", 0), encode(scan(model, 0)))
+        wait_for(lambda: any(a.ids == (0,) for a in answers))
+        assert holds == []  # kept up
+        monkeypatch.setattr(ingest_module, "HOLD_TRACERS_AFTER_S", -1.0)  # every message has waited longer
+        ingest.submit(scan_key("default", "r", 1), encode(scan(model, 1)))
+        wait_for(lambda: any(a.ids == (1,) for a in answers))
+        assert holds == [1]
+    finally:
+        ingest.stop()

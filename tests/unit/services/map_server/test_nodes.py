@@ -38,6 +38,23 @@ def test_change_log_holds_each_node_once_however_often_it_moves():
     assert set(log.since(4950)) == set(keys[50:]) and len(log.since(4900)) == 100
 
 
+def test_the_oldest_changes_come_first_with_the_position_they_account_up_to_and_their_time(monkeypatch):
+    clock = iter([10.0, 20.0, 30.0])
+    monkeypatch.setattr(nodes.time, "monotonic", lambda: next(clock))
+    log = ChangeLog()
+    r = [NodeKey("r", i) for i in range(5)]
+    log.extend(r[:3])  # positions 0-2 at t 10
+    log.extend([r[0], r[3]])  # r0 moves again: 3, 4 at t 20
+    log.extend([r[4]])  # 5 at t 30
+    assert log.oldest_since(0, None) == (log.since(0), 6)
+    assert log.oldest_since(0, 2) == ([r[2], r[1]], 3)  # r0's latest change (3) is past them
+    assert log.oldest_since(3, 2) == ([r[3], r[0]], 5)
+    assert log.oldest_since(3, 5) == (log.since(3), 6)
+    assert [log.time_of(p) for p in (0, 2, 3, 4, 5)] == [10.0, 10.0, 20.0, 20.0, 30.0]
+    log.drop_before(4)
+    assert [log.time_of(p) for p in (4, 5)] == [20.0, 30.0] and len(log._batches) == 2
+
+
 @pytest.fixture(scope="module")
 def model():
     rng = np.random.default_rng(1)

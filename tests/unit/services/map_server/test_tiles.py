@@ -116,6 +116,7 @@ def test_busy_tracers_coalesce_a_recent_state_and_update_an_older_one_in_the_bac
 
 
 def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover(messages, monkeypatch):
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # `warm` and `changed` are tiles of their own
     fleet = fleet_of(messages[:20], trace_threads=1)
     warm, changed = GRID, Grid.from_bbox([-4.0, -8.0], [4.0, 0.0], 0.1)
     fleet.occupancy(warm)
@@ -211,3 +212,110 @@ def offline(messages, update, samples_per_cell: dict[int, float]) -> np.ndarray:
     counted = [posed._replace(samples_per_cell=samples_per_cell.get(key[1])) for key, posed in reaching.items()]
     hits, misses = fleet._tracers.trace(GRID, counted, [])
     return map_estimate(hits, misses, fleet.prior)
+
+
+def viewer_tiles(resolution: float, side: int = 64) -> list[Grid]:
+    """Tiles of `side` cells on the lattice of `resolution` over GRID's box, as the viewer asks."""
+    size = side * resolution
+    return [
+        Grid([ix * size, iy * size], resolution, (side, side))
+        for ix in range(int(GRID.origin[0] // size), int(-(-GRID.upper[0] // size)))
+        for iy in range(int(GRID.origin[1] // size), int(-(-GRID.upper[1] // size)))
+    ]
+
+
+def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages, monkeypatch):
+    """The viewer's tiles of a resolution are windows of one layer, grown as tiles are asked for:
+    a node is traced once for all of them. Their counts are those of tiles of their own but where
+    a ray passes a cell corner within round-off (traced from another grid origin); updated, the
+    windows have the bits of a fresh map's asked in the same order."""
+    fleet, alone = fleet_of(messages[:20]), fleet_of(messages[:20])
+    tiled = viewer_tiles(0.1)
+    layered = [fleet.occupancy(grid) for grid in tiled]
+    assert fleet.cache_stats()["tiles"] == 1 and 1 < fleet.cache_stats()["misses"] < len(tiled)  # grown as asked
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)
+    own = [alone.occupancy(grid) for grid in tiled]
+    assert alone.cache_stats()["tiles"] == len(tiled)
+    differ = sum(int(np.sum(a != b)) for a, b in zip(layered, own))
+    assert differ <= 1e-3 * len(tiled) * 64 * 64
+    monkeypatch.undo()
+
+    for msg in messages[20:24]:
+        fleet.add_scan(msg)
+    fresh = fleet_of(messages[:24])
+    for grid in tiled:
+        fresh.occupancy(grid)
+    for grid in reversed(tiled):  # the first asked brings the whole layer up to date
+        assert np.array_equal(fleet.occupancy(grid), fresh.occupancy(grid))
+    assert fleet.cache_stats()["updates"] == 1
+
+    off_lattice = Grid(GRID.origin + 0.05, 0.1, (64, 64))
+    fleet.occupancy(off_lattice)
+    assert fleet.cache_stats()["tiles"] == 2  # a tile of its own
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 200 * 200)
+    far = Grid([100.0, 100.0], 0.1, (64, 64))  # would grow the layer past its bound
+    fleet.occupancy(far)
+    assert fleet.cache_stats()["tiles"] == 3
+
+
+def test_a_large_update_is_thinned_on_idle_tracers_unless_every_change_is_asked(messages, monkeypatch):
+    """Idle tracers trace an update with every sample only up to FULL_UPDATE_NODES nodes: a larger one
+    is thinned and refined behind it; a request for every change (max_age 0) gets every sample."""
+    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
+    fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 1.0  # 20 nodes, afresh: thinned
+    wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
+    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:20], None, {}))
+    for msg in messages[20:32]:
+        fleet.add_scan(msg)
+    assert fleet.occupancy_answer(GRID).samples_per_cell == 1.0  # 12 changed nodes: thinned
+    exact = fleet.occupancy_answer(GRID, max_age=0)  # every change asked (its own tile, not the layer)
+    assert exact.samples_per_cell == 4.0 and np.array_equal(exact.prob, offline(messages[:32], None, {}))
+
+
+def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(messages, monkeypatch):
+    """A backlog of changes is applied MAX_UPDATE_NODES at a time, oldest first: each answer says how
+    long ago the first change it lacks was made, and the last has the bits of a fresh map. A request
+    for every change (max_age 0) applies them all at once."""
+    monkeypatch.setattr(tiles, "MAX_UPDATE_NODES", 5)
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
+    fleet = fleet_of(messages[:20])
+    fleet.occupancy(GRID)
+    for msg in messages[20:32]:
+        fleet.add_scan(msg)
+    time.sleep(0.05)
+    answers = [fleet.occupancy_answer(GRID) for _ in range(4)]  # 5 + 5 + 2 changed nodes, then none
+    assert [a.kind for a in answers] == ["updated", "updated", "updated", "fresh"]
+    assert answers[0].age >= 0.05 and answers[1].age >= 0.05 and answers[2].age == answers[3].age == 0.0
+    assert fleet.cache_stats()["updates"] == 3
+    assert np.array_equal(answers[3].prob, fleet_of(messages[:32]).occupancy(GRID))
+    assert not np.array_equal(answers[0].prob, answers[3].prob)
+    shift = np.array([0.3, -0.2, 0.05])
+    update = PoseGraphUpdate(
+        "f", "r1", 1, tuple((m.node, Pose.from_xytheta(*(m.pose.as_xytheta() + shift))) for m in messages[:8])
+    )
+    fleet.apply_poses(update)  # 8 moved nodes
+    assert np.array_equal(fleet.occupancy_answer(GRID, max_age=0).prob, offline(messages[:32], update, {}))
+    assert fleet.cache_stats()["updates"] == 4 and fleet.cache_stats()["tiles"] == 1
+
+
+def test_a_request_that_waited_for_another_update_is_served_its_state(messages):
+    """A request whose previous state is too old waits for the update under way and is served what
+    that update made, however much backlog it left, rather than waiting for a turn of its own."""
+    fleet = fleet_of(messages[:20], trace_threads=1)
+    fleet.occupancy(GRID)
+    fleet.add_scan(messages[20])
+    time.sleep(0.01)  # the previous state is older than the request takes
+    (tile,) = fleet._tiles.values()
+    answers = []
+    with tile.lock:  # another request's update, under way
+        waiting = threading.Thread(target=lambda: answers.append(fleet.occupancy_answer(GRID, max_age=0.005)))
+        waiting.start()
+        waiting.join(0.3)
+        assert waiting.is_alive()
+        made = np.zeros(GRID.array_shape, np.float32)
+        with fleet._lock:
+            tile.prob = made  # what that update published (a backlog left: not up to date)
+    waiting.join(10)
+    assert answers[0].kind == "updated" and answers[0].prob is made and answers[0].age > 0
+    assert fleet.cache_stats()["updates"] == 0
