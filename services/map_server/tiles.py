@@ -113,6 +113,9 @@ class Tile:
     lock: threading.Lock = field(default_factory=threading.Lock)  # one update at a time
     refreshing: bool = False  # an update in the background is queued or running (TileCache._refresh)
     updated: threading.Condition | None = None  # on the map's lock: notified when an update ends
+    # A layer's windows of one state, the same array each time it is asked for (so its encoded reply
+    # is reused: services/api/encoded.py): (the state's prob, {window's (start, stop)s: view}).
+    views: tuple[np.ndarray | None, dict] = field(default_factory=lambda: (None, {}))
 
     @property
     def nbytes(self) -> int:
@@ -231,7 +234,10 @@ class TileCache:
             self._nodes.check_dim(grid)
             tile, window = self._tile_for(grid, robots, may_shed, layered=max_age > 0)
         answer = self._answer_from(tile, max_age, deadline, may_shed)
-        return answer if window is None else replace(answer, prob=answer.prob[window])
+        if window is None:
+            return answer
+        with self._lock:
+            return replace(answer, prob=_view(tile, answer.prob, window))
 
     def _tile_for(
         self, grid: Grid, robots: tuple[str, ...] | None, may_shed: bool, layered: bool
@@ -561,6 +567,19 @@ def _window(offset: np.ndarray, shape: tuple[int, ...], whole: tuple[int, ...]) 
     if not offset.any() and shape == whole:
         return None
     return tuple(slice(int(o), int(o) + n) for o, n in reversed(list(zip(offset, shape))))
+
+
+def _view(tile: Tile, prob: np.ndarray, window: tuple[slice, ...]) -> np.ndarray:
+    """prob[window], the same view object for the same state and window (under the map's lock)."""
+    held, views = tile.views
+    if held is not prob:
+        views = {}
+        tile.views = (prob, views)
+    key = tuple((s.start, s.stop) for s in window)
+    view = views.get(key)
+    if view is None:
+        view = views[key] = prob[window]
+    return view
 
 
 def _thinned(counted: Iterable[Posed]) -> int:

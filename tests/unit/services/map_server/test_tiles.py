@@ -248,6 +248,7 @@ def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages,
     for grid in reversed(tiled):  # the first asked brings the whole layer up to date
         assert np.array_equal(fleet.occupancy(grid), fresh.occupancy(grid))
     assert fleet.cache_stats()["updates"] == 1
+    assert fleet.occupancy(tiled[3]) is fleet.occupancy(tiled[3])  # one window object per state: encoded once
 
     off_lattice = Grid(GRID.origin + 0.05, 0.1, (64, 64))
     fleet.occupancy(off_lattice)
