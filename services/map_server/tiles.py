@@ -63,14 +63,13 @@ BUSY_REPOSE_CELLS = 1.0  # the same in an update with busy tracers, whose fewer 
 # Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
 # is a background update like any other, and one of a whole tile would hold the tracers for seconds.
 REFINE_NODES = 64
-# Nor does an update with idle tracers trace more nodes than this with every sample (unless every change
-# is asked for): a layer's update after loop closures moves thousands, which at 4 samples per cell
-# held the tracers for tens of seconds (docs/RELIABILITY.md, "Seventh session").
+# Bounded updates (those of HTTP requests and in the background: TileCache._begin_update) trace at most
+# FULL_UPDATE_NODES nodes with every sample on idle tracers, and apply at most MAX_UPDATE_NODES changed
+# nodes, those changed longest ago (the next update goes on from there). A layer's update after loop
+# closures moves thousands of nodes: at 4 samples per cell it held the tracers for tens of seconds,
+# and every request waited for it once the state it replaces was too old to serve
+# (docs/RELIABILITY.md, "Seventh session").
 FULL_UPDATE_NODES = 64
-# An update (but one asking for every change) applies at most this many changed nodes, those changed
-# longest ago; the next update goes on from there. An update after loop closures otherwise traces
-# thousands of moved nodes at once, and every request waits for it once the state it replaces is
-# too old to serve (docs/RELIABILITY.md, "Seventh session").
 MAX_UPDATE_NODES = 400
 SLOW_UPDATE_S = 1.0  # an update that took longer is logged (with what it traced)
 # A layer (TileCache._tile_for) holds at most this many cells: 2M, 40 MB with its counts and
@@ -320,29 +319,32 @@ class TileCache:
                 self._admit(may_shed)  # it would trace, or wait for a trace: shed if they are saturated
                 if tile.lock.acquire(blocking=False):  # never waits under the map's lock
                     full = max_age <= 0 or self._tracers.load().idle
-                    work = self._begin_update(tile, full, refine=None if max_age <= 0 else REFINE_NODES)
+                    refine = None if max_age <= 0 else REFINE_NODES
+                    work = self._begin_update(tile, full, refine, bounded=refine is not None and deadline is not None)
                     break
                 before = tile.prob
             with tile.lock:  # another request updates it, and its previous state is too old or absent
                 pass
         return self._update(tile, work)
 
-    def _begin_update(self, tile: Tile, full: bool, refine: int | None) -> tuple:
+    def _begin_update(self, tile: Tile, full: bool, refine: int | None, bounded: bool) -> tuple:
         """What an update of `tile` traces, under the map's lock with `tile.lock` held: (afresh, the
-        nodes reaching it or those changed since it last read the log (at most MAX_UPDATE_NODES
-        unless `refine` is None), the changes and log position it will account for, whether that
-        leaves later changes out, whether it is the first trace, the samples per cell of what it traces:
-        None for the map's, which `full` asks for (for at most FULL_UPDATE_NODES nodes unless `refine`
-        is None), and then the thinned nodes, at most `refine` (None: all), it traces again with every
-        sample, where they stand now)."""
+        nodes reaching it or those changed since it last read the log (at most MAX_UPDATE_NODES when
+        `bounded`), the changes and log position it will account for, whether that leaves later
+        changes out, whether it is the first trace, the samples per cell of what it traces: None for
+        the map's, which `full` asks for (for at most FULL_UPDATE_NODES nodes when `bounded`), and
+        then the thinned nodes, at most `refine` (None: all), it traces again with every sample,
+        where they stand now). Bounded: the updates of HTTP requests (which may be served a previous
+        state meanwhile) and in the background; an in-process caller (patience None) and a request
+        for every change get every change, at every sample with idle tracers."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
         afresh = first or tile.seen < self._nodes.log.start
         if afresh:
             nodes = self._nodes.reaching(tile.grid, tile.robots)
         else:
-            limit = None if refine is None else MAX_UPDATE_NODES
+            limit = MAX_UPDATE_NODES if bounded else None
             nodes, seen = self._nodes.changed_since(tile.seen, tile.grid, tile.robots, limit)
-        if refine is not None and len(nodes) > FULL_UPDATE_NODES:
+        if bounded and len(nodes) > FULL_UPDATE_NODES:
             full = False  # a large update is thinned even on idle tracers, and refined behind it
         samples_per_cell = None if full else self.busy_samples_per_cell
         refined = {}
@@ -401,7 +403,7 @@ class TileCache:
             full = self._tracers.load().idle
             if (tile.prob_at == tile.changes and not (tile.thinned and full)) or not tile.lock.acquire(blocking=False):
                 return  # up to date (and refined, or the tracers are busy), or a request is updating it
-            work = self._begin_update(tile, full, REFINE_NODES)
+            work = self._begin_update(tile, full, REFINE_NODES, bounded=True)
         try:
             self._update(tile, work)
         except TracingStopped:

@@ -260,24 +260,26 @@ def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages,
 
 
 def test_a_large_update_is_thinned_on_idle_tracers_unless_every_change_is_asked(messages, monkeypatch):
-    """Idle tracers trace an update with every sample only up to FULL_UPDATE_NODES nodes: a larger one
-    is thinned and refined behind it; a request for every change (max_age 0) gets every sample."""
+    """Idle tracers trace an HTTP request's update with every sample only up to FULL_UPDATE_NODES nodes:
+    a larger one is thinned and refined behind it; a request for every change (max_age 0) and an
+    in-process caller get every sample."""
     monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
-    assert fleet.occupancy_answer(GRID).samples_per_cell == 1.0  # 20 nodes, afresh: thinned
+    assert fleet.occupancy_answer(GRID, patience=0.0).samples_per_cell == 1.0  # 20 nodes, afresh: thinned
     wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
     assert np.array_equal(fleet.occupancy(GRID), offline(messages[:20], None, {}))
     for msg in messages[20:32]:
         fleet.add_scan(msg)
-    assert fleet.occupancy_answer(GRID).samples_per_cell == 1.0  # 12 changed nodes: thinned
+    assert fleet.occupancy_answer(GRID, patience=0.0).samples_per_cell == 1.0  # 12 changed nodes: thinned
     exact = fleet.occupancy_answer(GRID, max_age=0)  # every change asked (its own tile, not the layer)
     assert exact.samples_per_cell == 4.0 and np.array_equal(exact.prob, offline(messages[:32], None, {}))
 
 
 def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(messages, monkeypatch):
-    """A backlog of changes is applied MAX_UPDATE_NODES at a time, oldest first: each answer says how
-    long ago the first change it lacks was made, and the last has the bits of a fresh map. A request
-    for every change (max_age 0) applies them all at once."""
+    """An HTTP request's update (patience given) applies a backlog of changes MAX_UPDATE_NODES at a
+    time, oldest first: each answer says how long ago the first change it lacks was made, and the
+    last has the bits of a fresh map. A request for every change (max_age 0) applies them all at once,
+    and so does an in-process caller."""
     monkeypatch.setattr(tiles, "MAX_UPDATE_NODES", 5)
     monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
     fleet = fleet_of(messages[:20])
@@ -285,7 +287,7 @@ def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(me
     for msg in messages[20:32]:
         fleet.add_scan(msg)
     time.sleep(0.05)
-    answers = [fleet.occupancy_answer(GRID) for _ in range(4)]  # 5 + 5 + 2 changed nodes, then none
+    answers = [fleet.occupancy_answer(GRID, patience=0.0) for _ in range(4)]  # 5 + 5 + 2 changed nodes, then none
     assert [a.kind for a in answers] == ["updated", "updated", "updated", "fresh"]
     assert answers[0].age >= 0.05 and answers[1].age >= 0.05 and answers[2].age == answers[3].age == 0.0
     assert fleet.cache_stats()["updates"] == 3
@@ -298,6 +300,9 @@ def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(me
     fleet.apply_poses(update)  # 8 moved nodes
     assert np.array_equal(fleet.occupancy_answer(GRID, max_age=0).prob, offline(messages[:32], update, {}))
     assert fleet.cache_stats()["updates"] == 4 and fleet.cache_stats()["tiles"] == 1
+    fleet.apply_poses(PoseGraphUpdate("f", "r1", 2, tuple((m.node, m.pose) for m in messages[:8])))
+    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:32], None, {}))  # all 8 moved back at once
+    assert fleet.cache_stats()["updates"] == 5
 
 
 def test_a_request_that_waited_for_another_update_is_served_its_state(messages):
