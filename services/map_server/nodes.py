@@ -30,6 +30,7 @@ from protocol import PoseGraphUpdate, ScanMessage
 from .pose_graph import PoseGraph
 
 CHANGE_LOG_LIMIT = 1 << 20  # entries (8 bytes each) kept for tiles that are not asked for again
+BATCH_TIMES_LIMIT = 4096  # times of change-log batches kept (ChangeLog.time_of), however long the shift
 
 
 class NodeKey(NamedTuple):
@@ -228,6 +229,8 @@ class ChangeLog:
     def extend(self, keys: Iterable[NodeKey]) -> None:
         latest = self._latest
         self._batches.append((self.end, time.monotonic()))
+        if len(self._batches) > BATCH_TIMES_LIMIT:  # no tile drops them (none asked for): every other one
+            self._batches = self._batches[::2]  # goes, so `time_of` answers an earlier time, never a later one
         for key in keys:
             latest.pop(key, None)
             latest[key] = self.end

@@ -55,6 +55,17 @@ def test_the_oldest_changes_come_first_with_the_position_they_account_up_to_and_
     assert [log.time_of(p) for p in (4, 5)] == [20.0, 30.0] and len(log._batches) == 2
 
 
+def test_batch_times_stay_bounded_and_never_make_a_change_look_newer(monkeypatch):
+    monkeypatch.setattr(nodes, "BATCH_TIMES_LIMIT", 8)
+    clock = iter(range(1, 100))
+    monkeypatch.setattr(nodes.time, "monotonic", lambda: float(next(clock)))
+    log = ChangeLog()
+    for i in range(40):  # no tile drops them
+        log.extend([NodeKey("r", i)])
+    assert len(log._batches) <= 8
+    assert all(log.time_of(p) <= p + 1 for p in range(40)) and log.time_of(39) > 30
+
+
 @pytest.fixture(scope="module")
 def model():
     rng = np.random.default_rng(1)
