@@ -1,4 +1,4 @@
-"""What the machine a service runs on offers it."""
+"""What the machine a service runs on offers it, and what it gave a run."""
 
 from __future__ import annotations
 
@@ -12,6 +12,33 @@ import sys
 def cpu_cores() -> int:
     """Cores this process may run on (its CPU affinity where the OS says, else all)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def cpu_ticks() -> tuple[int, int, int] | None:
+    """Clock ticks all the machine's CPUs spent (busy, idle, stolen) since boot: Linux /proc/stat;
+    None where it does not say. Stolen: the hypervisor ran another guest while this one had work
+    (a shared VM under load gives a run fewer cores than it has)."""
+    try:
+        with open("/proc/stat") as stat:
+            fields = [int(v) for v in stat.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 8:
+        return None
+    user, nice, system, idle, iowait, irq, softirq, steal = fields
+    return user + nice + system + irq + softirq, idle + iowait, steal
+
+
+def cpu_shares(before: tuple[int, int, int] | None, after: tuple[int, int, int] | None) -> dict[str, float] | None:
+    """The fractions of the machine's CPU time that were busy, idle and stolen between two
+    `cpu_ticks` readings (None where either is missing or no tick passed)."""
+    if before is None or after is None:
+        return None
+    ticks = [b - a for a, b in zip(before, after)]
+    total = sum(ticks)
+    if total <= 0:
+        return None
+    return {name: round(t / total, 3) for name, t in zip(("busy", "idle", "steal"), ticks)}
 
 
 def _libc_malloc_trim():

@@ -202,6 +202,7 @@ def grade(record: RunRecord, replays: BeamReplays | None = None) -> Grading:
         tile_age_p99_s=percentile(tile_ages, 99),
         tile_age_max_s=max(tile_ages, default=None),
         cpu_s={k: round(v, 2) for k, v in record.cpu_s.items()},
+        host_cpu=record.host_cpu,
         realtime_factor=o.duration * cpu_cores() / busy,
         schedule_slip_s=max(slip, default=None),
         **memory_growth(record.server_rss),

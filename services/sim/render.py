@@ -125,6 +125,10 @@ def markdown(r: SimReport) -> str:
             f"{_fmt(r.tile_requests)} / {_fmt(r.tile_errors)}{f' ({error_kinds})' if r.tile_errors else ''}; {tiles}",
         ),
         ("CPU s: server / agents / harness", cpu),
+        (
+            "the machine's CPU while driving: busy / idle / stolen by other guests",
+            " / ".join(f"{r.host_cpu[k]:.0%}" for k in ("busy", "idle", "steal")) if r.host_cpu else "-",
+        ),
         ("faster than real time (simulated s x cores / CPU s of server + agents)", f"{_fmt(r.realtime_factor, 3)}x"),
         ("schedule slip (last scan later than planned, s)", _fmt(r.schedule_slip_s, 3)),
         (

@@ -103,6 +103,9 @@ class SimReport:
     tile_age_max_s: float | None
     # processor time
     cpu_s: dict[str, float]  # "server", "agents", "harness"
+    # The machine's CPU time while the robots drove, as fractions "busy", "idle", "steal" (Linux; None
+    # elsewhere): on a shared VM, the share stolen by other guests says how many cores the run had.
+    host_cpu: dict[str, float] | None
     realtime_factor: float
     schedule_slip_s: float | None
     # the server's memory

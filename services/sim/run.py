@@ -35,7 +35,7 @@ import numpy as np
 
 from gmm_core import Grid
 from services.config import GmmapConfig
-from services.host import child_pids, cpu_cores, die_with_parent
+from services.host import child_pids, cpu_cores, cpu_shares, cpu_ticks, die_with_parent
 from services.http_client import HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
@@ -275,6 +275,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
         snapshots_dir.mkdir()
         (start / "go").touch()
         record.started = time.time()
+        host_before = cpu_ticks()
 
         def snapshot() -> float:
             """Fetch and keep the whole graded map; the seconds it took."""
@@ -311,6 +312,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
                 stored.refresh()
                 time.sleep(0.2)
             published.n, stored.n = tap.counts()
+        record.host_cpu = cpu_shares(host_before, cpu_ticks())
         driving.set()
         snapshotter.join()
         if clients is not None:

@@ -1,11 +1,12 @@
-"""What a service asks of its machine: cores, and freed memory handed back to the OS."""
+"""What a service asks of its machine: cores, freed memory handed back to the OS, and how busy the machine was."""
 
 import sys
 import threading
+import time
 
 import pytest
 
-from services.host import cpu_cores, release_free_memory
+from services.host import cpu_cores, cpu_shares, cpu_ticks, release_free_memory
 
 
 def resident_mib() -> float:
@@ -33,3 +34,22 @@ def test_freed_memory_goes_back_to_the_os_on_release():
     freed = resident_mib()
     assert release_free_memory()
     assert resident_mib() < freed - 100
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/stat")
+def test_cpu_shares_split_the_time_between_two_readings():
+    """Busy, idle and stolen fractions of the machine's CPU time sum to one; a burst of work on this
+    thread shows as busy time."""
+    before = cpu_ticks()
+    deadline = time.monotonic() + 0.3
+    while time.monotonic() < deadline:
+        pass
+    shares = cpu_shares(before, cpu_ticks())
+    assert shares is not None and set(shares) == {"busy", "idle", "steal"}
+    assert abs(sum(shares.values()) - 1) < 0.01 and shares["busy"] > 0
+
+
+def test_cpu_shares_of_missing_or_equal_readings_are_none():
+    assert cpu_shares(None, (1, 2, 3)) is None and cpu_shares((1, 2, 3), None) is None
+    assert cpu_shares((1, 2, 3), (1, 2, 3)) is None
+    assert cpu_shares((0, 0, 0), (5, 3, 2)) == {"busy": 0.5, "idle": 0.3, "steal": 0.2}
