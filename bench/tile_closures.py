@@ -124,10 +124,12 @@ def main() -> int:
     seconds = len(steps)
     for name in schedules:
         costs = list(closure_s[name].values())
-        print(
-            f"{name}: closures {sum(costs) / seconds:.3f} CPU s per mission second, at most {max(costs):.2f} after one"
-            f" second's closures; new scans {new_s[name] / seconds:.3f} CPU s per mission second"
+        closures = (
+            f"closures {sum(costs) / seconds:.3f} CPU s per mission second, at most {max(costs):.2f} after one second's"
+            if costs
+            else f"no loop closure in {seconds} s (one every {correction_interval(args.rate):g} scans a robot)"
         )
+        print(f"{name}: {closures}; new scans {new_s[name] / seconds:.3f} CPU s per mission second")
     return 0
 
 
