@@ -44,6 +44,7 @@ from .ingest import Ingest
 from .state import ServerState
 from .store import Store
 from .tokens import TokenFile
+from .warmup import warm_kernels
 
 log = logging.getLogger("gmmap.server")
 
@@ -210,6 +211,7 @@ def run_server(
         print(f"gmmap server: WARNING {exposure}", file=sys.stderr, flush=True)
     stop = StopSignal()
     stop.exit_if_stuck(STOP_DEADLINE_S, "gmmap server")
+    warm_s = warm_kernels()  # before anything arrives: the first scans and tiles do not wait for numba
 
     store = Store(options.data_dir, synchronous=options.synchronous)
     fleet_map = FleetMap(
@@ -250,7 +252,8 @@ def run_server(
             f"gmmap server ready: fleet {options.fleet}, {replayed} scans from {store.path}, "
             f"zenoh {','.join(options.listen) or '-'}"
             f"{' -> ' + ','.join(options.zenoh_connect) if options.zenoh_connect else ''}, "
-            f"http {http_banner(options, tokens) if http else 'off'}, {time.perf_counter() - started:.1f} s",
+            f"http {http_banner(options, tokens) if http else 'off'}, {time.perf_counter() - started:.1f} s "
+            f"(kernels loaded in {warm_s:.1f} s)",
             file=sys.stderr,
             flush=True,
         )

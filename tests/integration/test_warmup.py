@@ -1,0 +1,72 @@
+"""A map server loads numba's kernels before it serves (services/map_server/warmup.py): after
+`warm_kernels`, real scans decoded, added, re-posed and traced into a viewer's tile compile nothing
+more. Run in a fresh interpreter, where nothing else has called the kernels yet."""
+
+import json
+import subprocess
+import sys
+
+from support.paths import DATA, ROOT
+
+SCRIPT = """
+import itertools, json, sys
+import numba
+import numpy as np
+from gmm_core import Grid, Pose, fit_scan
+from protocol import PoseGraphUpdate, ScanMessage, decode, encode
+from services.datasets import read_scans
+from services.map_server.fleet_map import FleetMap
+
+
+def compiled():
+    # Every numba kernel of the project's modules and the signatures it holds so far.
+    found = {}
+    for name, module in list(sys.modules.items()):
+        if name.split(".")[0] in ("gmm_core", "protocol", "services"):
+            for attr, value in vars(module).items():
+                if isinstance(value, numba.core.registry.CPUDispatcher):
+                    found[f"{name}.{attr}"] = len(value.signatures)
+    return found
+
+
+# A robot's side first: real scans fitted and encoded (its kernels are not the server's).
+data = sys.argv[1]
+sets = {2: read_scans(data + "/carmen/intel-corrected.log.gz"), 3: read_scans(data + "/3d/kurt3d", fmt="kurt3d")}
+robots = {}
+for dim, scans in sets.items():
+    raws = []
+    for node, scan in enumerate(itertools.islice(scans, 3)):
+        model = fit_scan(scan.hits, scan.no_return)
+        raws.append(encode(ScanMessage("f", f"r{dim}", node, scan.stamp, model, scan.pose), "q" if node else "f32"))
+    robots[dim] = raws
+
+from services.map_server.warmup import warm_kernels
+
+before = compiled()
+warm_kernels()
+warmed = compiled()
+for dim, raws in robots.items():  # the server's side: ingest, a tile, a correction, the tile again
+    fleet_map = FleetMap("f", trace_threads=1)
+    fleet_map.add_scans([(decode(raw, expect=ScanMessage), len(raw), raw) for raw in raws])
+    centre = np.zeros(dim)
+    grid = Grid(centre - 3.2, 0.05 if dim == 2 else 0.1, (128,) * dim if dim == 2 else (64, 64, 16))
+    fleet_map.occupancy(grid)
+    moved = tuple((node, Pose(np.eye(dim), np.full(dim, 0.3))) for node in range(len(raws)))
+    fleet_map.apply_poses(PoseGraphUpdate("f", f"r{dim}", 1, moved))
+    fleet_map.occupancy(grid)
+    fleet_map.close()
+after = compiled()
+print(json.dumps({"warmed": sorted(k for k in warmed if warmed[k] > before.get(k, 0)),
+                  "new": {k: after[k] - warmed.get(k, 0) for k in after if after[k] > warmed.get(k, 0)}}))
+"""
+
+
+def test_after_warm_up_real_scans_and_tiles_compile_nothing():
+    run = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(DATA)], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    # The warm-up reached the server's own kernels (the robot's fit and encoding loaded the shared ones).
+    assert {"gmm_core.scan_trace._trace_blocks", "gmm_core.occupancy._map_estimate"} <= set(result["warmed"])
+    assert result["new"] == {}, f"kernels the warm-up did not load: {result['new']}"
