@@ -18,12 +18,13 @@ from gmm_core import Grid, Mixture, Pose, ScanModel
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode
 
 from .fleet_map import FleetMap
+from .nodes import ScanEntry
 
 _FLEET, _ROBOT = "warm-up", "r"
 
 
 def _scan(dim: int, node: int, encoding: str) -> tuple[ScanMessage, int, bytes]:
-    """A scan of two components each side of the sensor, as ingest receives it (decoded, size, bytes)."""
+    """A scan of two components, one each side of the sensor, as ingest receives it (decoded, size, bytes)."""
     means = np.array([[1.0] * dim, [-1.0] * dim])
     mixture = Mixture(np.array([0.5, 0.5]), means, np.stack([0.01 * np.eye(dim)] * 2), 20)
     pose = Pose.identity(dim)
@@ -39,7 +40,9 @@ def warm_kernels() -> float:
     for dim in (2, 3):
         fleet_map = FleetMap(_FLEET, trace_threads=1)
         try:
-            fleet_map.add_scans([_scan(dim, node, encoding) for node, encoding in enumerate(("q", "f32"))])
+            scans = [_scan(dim, node, encoding) for node, encoding in enumerate(("q", "f32"))]
+            # As ingest adds them: the entries, with the models it decoded.
+            fleet_map.add_entries([ScanEntry.of(*scan) for scan in scans], [msg.model for msg, _, _ in scans])
             grid = Grid(np.full(dim, -2.0), 0.5, (8,) * dim)
             fleet_map.occupancy(grid)
             moved = Pose(np.eye(dim), np.full(dim, 0.6))

@@ -16,6 +16,7 @@ from gmm_core import Grid, Pose, fit_scan
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode
 from services.datasets import read_scans
 from services.map_server.fleet_map import FleetMap
+from services.map_server.nodes import ScanEntry
 
 
 def compiled():
@@ -47,9 +48,9 @@ warm_kernels()
 warmed = compiled()
 for dim, raws in robots.items():  # the server's side: ingest, a tile, a correction, the tile again
     fleet_map = FleetMap("f", trace_threads=1)
-    fleet_map.add_scans([(decode(raw, expect=ScanMessage), len(raw), raw) for raw in raws])
-    centre = np.zeros(dim)
-    grid = Grid(centre - 3.2, 0.05 if dim == 2 else 0.1, (128,) * dim if dim == 2 else (64, 64, 16))
+    messages = [decode(raw, expect=ScanMessage) for raw in raws]
+    fleet_map.add_entries([ScanEntry.of(m, len(r), r) for m, r in zip(messages, raws)], [m.model for m in messages])
+    grid = Grid(np.full(dim, -3.2), 0.05 if dim == 2 else 0.1, (128,) * dim if dim == 2 else (64, 64, 16))
     fleet_map.occupancy(grid)
     moved = tuple((node, Pose(np.eye(dim), np.full(dim, 0.3))) for node in range(len(raws)))
     fleet_map.apply_poses(PoseGraphUpdate("f", f"r{dim}", 1, moved))
