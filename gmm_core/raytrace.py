@@ -137,12 +137,15 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
     The loop runs a multiple of 4 times, so the vector loop needs no scalar tail (a mispredicted
     exit fewer per axis): up to 3 entries past at + n are scratch, which the caller leaves room
     for and overwrites or ignores."""
-    out = cells[at:]  # indexed from 0 up, so no wrap-around of negative indices: stored as vectors
+    # Indexed from an unsigned base, not through a view cells[at:]: no wrap-around of negative
+    # indices, so the stores vectorise, and no view is made (three views cost about 40 ns of a
+    # ray's 130-340 ns, docs/BENCHMARKS.md).
+    base = np.uint64(at)
     for k in range((n + 3) & -4):
         kf = np.float64(k)
         b = min(max(np.floor(ub + kf * dub), lob), hib)
         c = min(max(np.floor(uc + kf * duc), loc), hic)
-        out[k] = np.uint64(flat + kf * step + b * stride_b + c * stride_c)
+        cells[base + np.uint64(k)] = np.uint64(flat + kf * step + b * stride_b + c * stride_c)
     return at + n
 
 

@@ -55,7 +55,9 @@ def _trace_mixture(
         # world: with the origin, a box every one of its rays stays in.
         reaches = True
         for a in range(d):
-            centre, half = _moved(R, t, means[k], a), 0.0
+            p[a] = means[k, a]  # copied: a row view of means costs a view's making per component
+        for a in range(d):
+            centre, half = _moved(R, t, p, a), 0.0
             for b in range(d):
                 row = 0.0
                 for c in range(b + 1):
