@@ -476,7 +476,7 @@ class TileCache:
         """Counts of every node in `reaching`, replacing what the tile held."""
         counted = [posed.counted_with(samples_per_cell) for posed in reaching.values()]
         if counted:
-            tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [])
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [], background=samples_per_cell is None)
         else:
             tile.hits, tile.misses = np.zeros(tile.grid.array_shape), np.zeros(tile.grid.array_shape)
         tile.held = {posed.key: posed for posed in counted}
@@ -525,14 +525,15 @@ class TileCache:
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of
         # the tile moved (a big correction).
-        if 2 * len(moved) <= len(held):
-            hits, misses = self._tracers.trace(tile.grid, new, list(moved.values()))  # moved: at their old pose
+        background = spc is None  # every sample: the busy updates' parts go first
+        if 2 * len(moved) <= len(held):  # moved: taken out at their old pose
+            hits, misses = self._tracers.trace(tile.grid, new, list(moved.values()), background)
             tile.hits += hits
             tile.misses += misses
             tile.thinned += _thinned(new) - _thinned(moved.values())
         else:
             kept = [posed.counted_with(spc) for k, posed in held.items() if k not in moved]
-            tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [])
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, kept + new, [], background)
             held.update((posed.key, posed) for posed in kept)
             tile.thinned = _thinned(kept) + _thinned(new)
         for k in moved:

@@ -53,6 +53,11 @@ SPLIT_MAX_CELLS = 1 << 22  # a trace on a grid this large is one part (each part
 SATURATED_QUEUE_PER_THREAD = 8
 SATURATED_WAIT_S = 1.0
 PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
+# Parts of background traces (every sample: a request for every change, or refining thinned nodes
+# while the tracers were idle) start only when no other part waits, or once the oldest has waited
+# this long: a viewer's busy update does not queue behind a graded snapshot of thousands of nodes,
+# and the snapshot still gets a turn every few seconds under any load.
+BACKGROUND_MAX_WAIT_S = 2.0
 TRACER_NICE = 5  # added to a tracer thread's nice value (CFS weight 335 against 1024 at nice 0)
 
 
@@ -123,7 +128,8 @@ class TracerPool:
         self._ingest_idle = threading.Event()
         self._ingest_idle.set()
         self._count_lock = threading.Lock()
-        self._queued = 0
+        # Parts waiting for a thread, (queued at, grid, entries, future): interactive, background.
+        self._parts: tuple[deque, deque] = (deque(), deque())
         self._running = 0
         self._part_seconds: float | None = None  # running mean, from the first part that finished
         self._local = threading.local()  # a tracer thread's TraceWorker
@@ -144,6 +150,10 @@ class TracerPool:
         finally:
             self._ingest_idle.set()
 
+    @property
+    def _queued(self) -> int:
+        return len(self._parts[0]) + len(self._parts[1])
+
     def load(self) -> TracerLoad:
         with self._count_lock:
             queued, running = self._queued, self._running
@@ -157,44 +167,63 @@ class TracerPool:
         self._pool.shutdown(wait=False, cancel_futures=True)
         with self._count_lock:
             workers, self._workers = self._workers, []
+            waiting = [part for parts in self._parts for part in parts]
+            for parts in self._parts:
+                parts.clear()
+        for _, _, _, future in waiting:  # their traces fail as the running ones do
+            future.set_exception(TracingStopped("the map server is stopping"))
         for worker in workers:  # a thread waiting on one gets WorkerGone, raised as TracingStopped
             worker.close()
 
-    def trace(self, grid: Grid, plus: list[Posed], minus: list[Posed]) -> tuple[np.ndarray, np.ndarray]:
+    def trace(
+        self, grid: Grid, plus: list[Posed], minus: list[Posed], background: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 hit and miss counts on `grid` of the nodes in `plus` less those in `minus`.
 
         Traced in parts of at most PART_NODES nodes, each by the one-thread kernel, on at most all
         threads but one at a time, so other traces' parts run between them (counts are sums of
-        quantised weights, exact in any order, so the split changes no bit).
+        quantised weights, exact in any order, so the split changes no bit). A `background`
+        trace's parts give way to the others' (BACKGROUND_MAX_WAIT_S).
         """
         entries = [(1.0, posed) for posed in plus] + [(-1.0, posed) for posed in minus]
         parts = 1 if grid.n_cells > SPLIT_MAX_CELLS else max(1, -(-len(entries) // PART_NODES))
         shares = iter([entries[i::parts] for i in range(parts)])
-        running = deque(self._submit(grid, share) for share in islice(shares, max(1, self.threads - 1)))
+        running = deque(self._submit(grid, share, background) for share in islice(shares, max(1, self.threads - 1)))
         hits, misses = running.popleft().result()
         while True:
             share = next(shares, None)
             if share is not None:  # the next part is queued only once one has finished
-                running.append(self._submit(grid, share))
+                running.append(self._submit(grid, share, background))
             if not running:
                 return hits, misses
             h, m = running.popleft().result()
             hits += h
             misses += m
 
-    def _submit(self, grid: Grid, entries: list[tuple[float, Posed]]) -> Future:
+    def _submit(self, grid: Grid, entries: list[tuple[float, Posed]], background: bool) -> Future:
+        """Queue a part; a pool thread takes the next part due when it is free (`_next_part`)."""
+        future: Future = Future()
         with self._count_lock:
-            self._queued += 1
-        return self._pool.submit(self._counted_part, grid, entries)
+            self._parts[1 if background else 0].append((time.monotonic(), grid, entries, future))
+        self._pool.submit(self._next_part)
+        return future
 
-    def _counted_part(self, grid: Grid, entries: list[tuple[float, Posed]]) -> tuple[np.ndarray, np.ndarray]:
-        """_trace_part, counted in the pool's load (queued until it starts, then running)."""
+    def _next_part(self) -> None:
+        """Trace the part due (an interactive one, unless a background one waited BACKGROUND_MAX_WAIT_S),
+        counted in the pool's load (queued until it starts, then running)."""
         with self._count_lock:
-            self._queued -= 1
+            interactive, background = self._parts
+            overdue = background and time.monotonic() - background[0][0] > BACKGROUND_MAX_WAIT_S
+            parts = background if overdue or not interactive else interactive
+            if not parts:  # the pool was closed: its parts were failed
+                return
+            _, grid, entries, future = parts.popleft()
             self._running += 1
         start = time.perf_counter()
         try:
-            return self._trace_part(grid, entries)
+            future.set_result(self._trace_part(grid, entries))
+        except BaseException as error:  # the trace's caller raises it
+            future.set_exception(error)
         finally:
             seconds = time.perf_counter() - start
             with self._count_lock:

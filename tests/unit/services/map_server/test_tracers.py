@@ -1,11 +1,16 @@
-"""The tracer pool's threads yield the cores to ingest and HTTP (tracers.TRACER_NICE)."""
+"""The tracer pool's threads yield the cores to ingest and HTTP (tracers.TRACER_NICE), and its
+background traces to the others (tracers.BACKGROUND_MAX_WAIT_S)."""
 
 import os
 import sys
 import threading
+import time
 
+import numpy as np
 import pytest
 
+from gmm_core import Grid
+from services.map_server import tracers
 from services.map_server.tracers import TRACER_NICE, TracerPool
 
 
@@ -19,3 +24,43 @@ def test_tracer_threads_run_at_a_lower_priority_than_the_server():
     caller = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     assert tracer == min(19, caller + TRACER_NICE)
     assert caller == os.getpriority(os.PRIO_PROCESS, 0)  # the rest of the process keeps its priority
+
+
+def _order_of_parts(monkeypatch, max_wait_s: float) -> list[str]:
+    """The order in which a one-thread pool traces: a blocking part, then a background and an
+    interactive trace queued behind it in that order."""
+    monkeypatch.setattr(tracers, "BACKGROUND_MAX_WAIT_S", max_wait_s)
+    pool = TracerPool(1, samples=None)
+    order, release = [], threading.Event()
+
+    def part(grid, entries):  # stands in for the kernel: the entries are tags
+        tag = entries[0][1]
+        if tag == "first":
+            release.wait(10)
+        order.append(tag)
+        return np.zeros(1), np.zeros(1)
+
+    monkeypatch.setattr(pool, "_trace_part", part)
+    grid = Grid(np.zeros(2), 1.0, (1, 1))
+    calls = []
+    try:
+        for tag, background, queued in (("first", True, 0), ("snapshot", True, 1), ("viewer", False, 2)):
+            calls.append(threading.Thread(target=pool.trace, args=(grid, [tag], [], background)))
+            calls[-1].start()
+            deadline = time.monotonic() + 10
+            while pool.load().queued < queued and time.monotonic() < deadline:  # in this order
+                time.sleep(0.001)
+        time.sleep(0.01)
+        release.set()
+        for call in calls:
+            call.join(10)
+    finally:
+        pool.close()
+    return order
+
+
+def test_background_parts_give_way_to_waiting_interactive_ones(monkeypatch):
+    """A viewer's update queued after a graded snapshot's part is traced first; a background part
+    that waited BACKGROUND_MAX_WAIT_S goes first all the same (it is not starved)."""
+    assert _order_of_parts(monkeypatch, 60.0) == ["first", "viewer", "snapshot"]
+    assert _order_of_parts(monkeypatch, 0.0) == ["first", "snapshot", "viewer"]
