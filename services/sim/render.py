@@ -20,8 +20,9 @@ same run: raw scans (float32 per beam in 2D, float32 x, y, z per beam in 3D, as 
 occupancy-grid deltas at 0.1 m (the robot's counting grid of its beams; every cell whose state,
 unknown / free / occupied, changes costs 4 B index + 1 B value), and OctoMap deltas (the `.bt`
 of a fresh 0.1 m OcTree holding just that scan; only when `octomap-python` is installed; in a
-run of more than 2000 scans, every n-th scan of each robot is built and the scans between count
-the last one built, so that grading takes minutes however long the mission).
+run of more than 2000 scans in 2D or 100 in 3D, where a scan's tree takes 15 times as long, every
+n-th scan of each robot is built and the scans between count the last one built, so that grading
+takes minutes however long the mission).
 Grid and OctoMap deltas are lower bounds: neither can be re-posed, so a pose-graph correction
 would cost them a resend that is not counted here.
 

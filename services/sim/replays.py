@@ -61,11 +61,13 @@ class BeamReplays:
         self._futures: dict[str, Future] = {}
         self._failed: BaseException | None = None  # why the workers could not be started
         self._submitted, self._closing = threading.Event(), threading.Event()
-        self._starting = threading.Thread(target=self._start, args=(dict(record.published), record.fleet.robots))
+        self._starting = threading.Thread(
+            target=self._start, args=(dict(record.published), record.fleet.robots, record.grid.dim)
+        )
         self._starting.start()
 
-    def _start(self, published: dict[str, int], robots: int) -> None:
-        stride = octomap_stride(sum(published.values()))
+    def _start(self, published: dict[str, int], robots: int, dim: int) -> None:
+        stride = octomap_stride(sum(published.values()), dim)
         try:
             for i in range(robots):
                 name = robot_name(i)

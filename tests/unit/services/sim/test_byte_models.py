@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from services.sim.byte_models import add_scan_counts, grid_state
+from services.sim.byte_models import OCTOMAP_SAMPLES, add_scan_counts, grid_state, octomap_stride
 
 
 def numpy_reference(hits, misses, first_seen, h, m, count, unseen):
@@ -42,3 +42,12 @@ def test_add_scan_counts_equals_numpy_on_random_windows(seed):
     assert add_scan_counts(*(a[None] for a in plane), h[None], m[None], 7, unseen) == want > 0
     for a, b in zip(plane, expected_plane, strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_octomap_stride_builds_at_most_the_samples_of_the_dimension(dim):
+    for scans in (1, 100, 300, 2000, 4001, 180_000):
+        stride = octomap_stride(scans, dim)
+        built = -(-scans // stride)  # scans k with k % stride == 0
+        assert built <= OCTOMAP_SAMPLES[dim]
+        assert stride == 1 or -(-scans // (stride - 1)) > OCTOMAP_SAMPLES[dim]  # no sparser than needed
