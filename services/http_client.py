@@ -4,7 +4,11 @@ trust, both read from files, so neither appears on a command line."""
 from __future__ import annotations
 
 import functools
+import http.client
+import io
 import ssl
+import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from email.message import Message
@@ -66,3 +70,54 @@ class HttpClient:
         request = urllib.request.Request(self.base + path, headers=headers)
         with urllib.request.urlopen(request, timeout=timeout, context=context) as response:
             return response.read(), response.headers
+
+
+class Connection:
+    """One persistent HTTP/1.1 connection to an HttpClient's server, as a browser keeps one for a
+    viewer: GETs reuse it (urllib opens and closes one per request, which costs the server and the
+    client about 0.25 and 0.2 ms more a tile), and it is opened again once the server closed it.
+    Errors as HttpClient.fetch: HTTPError (an OSError) for a 4xx or 5xx. One per thread."""
+
+    def __init__(self, client: HttpClient, timeout: float):
+        self._client, self._timeout = client, timeout
+        self._url = urllib.parse.urlsplit(client.base)
+        self._headers = {"Authorization": f"Bearer {client.token}"} if client.token else {}
+        self._open: http.client.HTTPConnection | None = None
+
+    def fetch(self, path: str) -> tuple[bytes, Message]:
+        """The body and headers of GET `path`."""
+        for attempt in range(2):
+            if self._open is None:
+                self._open = self._connect()
+            try:
+                self._open.request("GET", path, headers=self._headers)
+                response = self._open.getresponse()
+                body = response.read()
+            except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
+                self.close()  # closed by the server while idle: a GET may be asked again on a new one
+                if attempt:
+                    raise
+                continue
+            except BaseException:
+                self.close()
+                raise
+            if response.will_close:
+                self.close()
+            if response.status >= 400:
+                url = self._client.base + path
+                raise urllib.error.HTTPError(url, response.status, response.reason, response.headers, io.BytesIO(body))
+            return body, response.headers
+        raise AssertionError("unreachable")
+
+    def _connect(self) -> http.client.HTTPConnection:
+        host, port = self._url.hostname, self._url.port
+        if self._url.scheme == "https":
+            return http.client.HTTPSConnection(
+                host, port, timeout=self._timeout, context=tls_context(self._client.ca_file)
+            )
+        return http.client.HTTPConnection(host, port, timeout=self._timeout)
+
+    def close(self) -> None:
+        if self._open is not None:
+            self._open.close()
+            self._open = None

@@ -67,8 +67,10 @@ def grey_image(grey: np.ndarray) -> Image.Image:
 
 
 def _png(image: Image.Image) -> bytes:
+    # zlib's fastest level: a 256 x 256 tile of classes in 0.26 against 0.59 ms at the default, 30 %
+    # more bytes (813 against 626): tiles of three classes are small either way.
     buffer = io.BytesIO()
-    image.save(buffer, format="PNG")
+    image.save(buffer, format="PNG", compress_level=1)
     return buffer.getvalue()
 
 

@@ -29,6 +29,7 @@ import time
 import urllib.error
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
+from http.client import HTTPException
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ import numpy as np
 from gmm_core import Grid
 from services.config import GmmapConfig
 from services.host import child_pids, cpu_cores, cpu_shares, cpu_ticks, die_with_parent
-from services.http_client import HttpClient
+from services.http_client import Connection, HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
 from services.sim.grading import grade
@@ -97,17 +98,18 @@ def tile_urls(grid: Grid) -> list[str]:
 
 def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) -> None:
     """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set, as a viewer
-    does: a shed request (503) waits its Retry-After (at most SHED_WAIT_S) before the next. Puts
+    does: each on a connection it keeps; a shed request (503) waits its Retry-After (at most
+    SHED_WAIT_S) before the next. Puts
     ((asked, latency, X-Map-Age) of the answered requests, failures by kind) on `results`."""
     die_with_parent(multiprocessing.parent_process().pid)
     latencies, errors, lock = [], Counter(), threading.Lock()
 
     def client(seed: int) -> None:
-        rng = random.Random(seed)
+        rng, connection = random.Random(seed), Connection(http, timeout=60)
         while not stop.is_set():
             asked, start = time.time(), time.perf_counter()
             try:
-                _, headers = http.fetch(rng.choice(urls), timeout=60)
+                _, headers = connection.fetch(rng.choice(urls))
                 with lock:
                     latencies.append((asked, time.perf_counter() - start, float(headers.get("X-Map-Age", "nan"))))
             except urllib.error.HTTPError as error:
@@ -115,10 +117,11 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
                     errors[f"HTTP {error.code}"] += 1
                 if error.code == 503:
                     stop.wait(min(SHED_WAIT_S, float(error.headers.get("Retry-After", 1))))
-            except OSError as error:
+            except (OSError, HTTPException) as error:
                 kind = f"HTTP {error.code}" if isinstance(error, urllib.error.HTTPError) else repr(error)[:120]
                 with lock:
                     errors[kind] += 1
+        connection.close()
 
     threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
     for thread in threads:
