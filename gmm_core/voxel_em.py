@@ -54,10 +54,10 @@ _BLOCK_VOXELS_PER_COMPONENT = 2
 
 
 @njit(cache=True, inline="always")
-def _voxel_key(points, i, size, far_squared):
+def _voxel_key(points, i, d, size, far_squared):
     """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
-    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set."""
-    d = points.shape[1]
+    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set.
+    `d`: the points' columns."""
     r2 = 0.0
     for a in range(d):
         r2 += points[i, a] * points[i, a]
@@ -113,7 +113,7 @@ def count_voxels(points, size):
     table, shift = _hash_table(_FIRST_TABLE_BITS)
     count = 0
     for i in range(points.shape[0]):
-        if _voxel_number(table, shift, _voxel_key(points, i, size, np.inf), count) == count:
+        if _voxel_number(table, shift, _voxel_key(points, i, points.shape[1], size, np.inf), count) == count:
             count += 1
             if 2 * count > table.shape[0]:
                 table, shift = _grown(table, count)
@@ -142,15 +142,25 @@ def _voxel_statistics(points, voxel_size, shift, near_range):
     its key (M,), voxels in the order of their first point: one pass, one hash probe per point.
     The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
     precise."""
+    # The dimension as a constant in each branch: the loops over the axes compile unrolled, 1.5x
+    # faster than with the columns read from the array (docs/BENCHMARKS.md, tenth session).
+    if points.shape[1] == 3:
+        return _voxel_sums(points, 3, voxel_size, shift, near_range)
+    return _voxel_sums(points, 2, voxel_size, shift, near_range)
+
+
+@njit(cache=True, inline="always")
+def _voxel_sums(points, d, voxel_size, shift, near_range):
+    """_voxel_statistics of (n, d) points."""
     far_squared = near_range * near_range
-    n, d = points.shape
+    n = points.shape[0]
     table, table_shift = _hash_table(_FIRST_TABLE_BITS)
     sums = np.empty((n, 1 + d + d * (d + 1) // 2))
     keys = np.empty(n, dtype=np.int64)
     x = np.empty(d)
     n_voxels = 0
     for i in range(n):
-        key = _voxel_key(points, i, voxel_size, far_squared)
+        key = _voxel_key(points, i, d, voxel_size, far_squared)
         v = _voxel_number(table, table_shift, key, n_voxels)
         if v == n_voxels:
             sums[v] = 0.0
@@ -264,16 +274,24 @@ def _split_groups(means, sums, n_groups):
     there are `n_groups` groups or none can be cut (one voxel, or all of its voxels' means on one
     side). Returns the summed statistics of each group (G, f).
     """
-    m, d = means.shape
+    if means.shape[1] == 3:  # constant dimensions, as in _voxel_statistics
+        return _split(means, sums, n_groups, 3)
+    return _split(means, sums, n_groups, 2)
+
+
+@njit(cache=True, inline="always")
+def _split(means, sums, n_groups, d):
+    """_split_groups of d-dimensional voxels."""
+    m, f = means.shape[0], 1 + d + d * (d + 1) // 2
     order = np.arange(m)
     first = np.empty(n_groups, dtype=np.int64)
     last = np.empty(n_groups, dtype=np.int64)
-    group_sums = np.empty((n_groups, sums.shape[1]))
+    group_sums = np.empty((n_groups, f))
     first[0], last[0] = 0, m
     group_sums[0] = sums.sum(axis=0)
     heap = [(-_spread(group_sums[0], d), 0)]
     count = 1
-    left = np.empty(sums.shape[1])
+    left = np.empty(f)
     centre, axis, product, cov = np.empty(d), np.empty(d), np.empty(d), np.empty((d, d))
     while count < n_groups and len(heap) > 0:
         _, g = heapq.heappop(heap)
@@ -288,7 +306,7 @@ def _split_groups(means, sums, n_groups):
             for a in range(d):
                 side += (means[v, a] - centre[a]) * axis[a]
             if side <= 0.0:
-                for q in range(sums.shape[1]):
+                for q in range(f):
                     left[q] += sums[v, q]
                 i += 1
             else:
