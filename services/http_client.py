@@ -86,7 +86,8 @@ class Connection:
 
     def fetch(self, path: str) -> tuple[bytes, Message]:
         """The body and headers of GET `path`."""
-        for attempt in range(2):
+        retried = False
+        while True:
             if self._open is None:
                 self._open = self._connect()
             try:
@@ -95,8 +96,9 @@ class Connection:
                 body = response.read()
             except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
                 self.close()  # closed by the server while idle: a GET may be asked again on a new one
-                if attempt:
+                if retried:
                     raise
+                retried = True
                 continue
             except BaseException:
                 self.close()
@@ -107,7 +109,6 @@ class Connection:
                 url = self._client.base + path
                 raise urllib.error.HTTPError(url, response.status, response.reason, response.headers, io.BytesIO(body))
             return body, response.headers
-        raise AssertionError("unreachable")
 
     def _connect(self) -> http.client.HTTPConnection:
         host, port = self._url.hostname, self._url.port

@@ -51,7 +51,7 @@ from services.sim.tap import WireTap
 TILE = 256  # cells per tile side, as the viewer asks
 # Cells a graded snapshot asks for per request. A box draws every component whose rays reach it, so a
 # ray is drawn and set up once per box it crosses: over the mine's graded box, boxes of 500,000 cells
-# drew 2.8x the samples of one box and took 1.5x the processor time of these (1.05x one box).
+# drew 2.8x the samples of one box and 1.5x the processor time of these (within 10 % of one box).
 SNAPSHOT_CELLS = 4_000_000
 ACK_TIMEOUT_S = 120.0  # the agents' --timeout: how long one waits for Acks after its last scan
 SHED_WAIT_S = 5.0  # the longest Retry-After a tile client honours
