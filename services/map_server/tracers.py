@@ -41,10 +41,11 @@ class TracingStopped(RuntimeError):
     """A trace cut off because its pool was closed."""
 
 
-# A trace is split into parts of at most PART_NODES nodes, and at most all threads but one run its parts
-# at a time: the graded snapshot (every change, every sample: thousands of nodes) otherwise held both
-# threads of a 2-core server for seconds while the viewer's updates waited (docs/RELIABILITY.md,
-# "Seventh session").
+# A trace is split into parts of at most PART_NODES nodes. A background trace runs its parts on at most
+# all threads but one at a time: the graded snapshot (every change, every sample: thousands of nodes)
+# otherwise held both threads of a 2-core server for seconds while the viewer's updates waited
+# (docs/RELIABILITY.md, "Seventh session"). An interactive trace may run parts on every thread: alone,
+# it has the pool to itself (one part at a time left a thread idle while the viewer waited for it).
 PART_NODES = 256
 SPLIT_MAX_CELLS = 1 << 22  # a trace on a grid this large is one part (each part holds its own counts)
 # Saturated: a new trace would wait behind this many queued parts per tracer thread, or about this
@@ -180,15 +181,17 @@ class TracerPool:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Exact float64 hit and miss counts on `grid` of the nodes in `plus` less those in `minus`.
 
-        Traced in parts of at most PART_NODES nodes, each by the one-thread kernel, on at most all
-        threads but one at a time, so other traces' parts run between them (counts are sums of
-        quantised weights, exact in any order, so the split changes no bit). A `background`
-        trace's parts give way to the others' (BACKGROUND_MAX_WAIT_S).
+        Traced in parts of at most PART_NODES nodes, each by the one-thread kernel, as many at a time
+        as there are threads (a `background` trace: all but one), the next queued as one finishes,
+        so other traces' parts run between them (counts are sums of quantised weights, exact in any
+        order, so the split changes no bit). A background trace's parts give way to the others'
+        (BACKGROUND_MAX_WAIT_S).
         """
         entries = [(1.0, posed) for posed in plus] + [(-1.0, posed) for posed in minus]
         parts = 1 if grid.n_cells > SPLIT_MAX_CELLS else max(1, -(-len(entries) // PART_NODES))
         shares = iter([entries[i::parts] for i in range(parts)])
-        running = deque(self._submit(grid, share, background) for share in islice(shares, max(1, self.threads - 1)))
+        in_flight = max(1, self.threads - 1) if background else self.threads
+        running = deque(self._submit(grid, share, background) for share in islice(shares, in_flight))
         hits, misses = running.popleft().result()
         while True:
             share = next(shares, None)

@@ -1,5 +1,6 @@
 """The tracer pool's threads yield the cores to ingest and HTTP (tracers.TRACER_NICE), and its
-background traces to the others (tracers.BACKGROUND_MAX_WAIT_S)."""
+background traces to the others (tracers.BACKGROUND_MAX_WAIT_S); an interactive trace alone runs on
+every thread."""
 
 import os
 import sys
@@ -64,3 +65,26 @@ def test_background_parts_give_way_to_waiting_interactive_ones(monkeypatch):
     that waited BACKGROUND_MAX_WAIT_S goes first all the same (it is not starved)."""
     assert _order_of_parts(monkeypatch, 60.0) == ["first", "viewer", "snapshot"]
     assert _order_of_parts(monkeypatch, 0.0) == ["first", "snapshot", "viewer"]
+
+
+@pytest.mark.parametrize("background, most", [(False, 2), (True, 1)])
+def test_a_trace_runs_parts_on_every_thread_a_background_one_on_all_but_one(monkeypatch, background, most):
+    pool = TracerPool(2, samples=None)
+    lock, running, seen = threading.Lock(), [0], []
+
+    def part(grid, entries):  # stands in for the kernel, long enough for the parts to overlap
+        with lock:
+            running[0] += 1
+            seen.append(running[0])
+        time.sleep(0.05)
+        with lock:
+            running[0] -= 1
+        return np.full(1, float(len(entries))), np.zeros(1)
+
+    monkeypatch.setattr(pool, "_trace_part", part)
+    try:
+        hits, _ = pool.trace(Grid(np.zeros(2), 1.0, (1, 1)), list(range(4 * tracers.PART_NODES)), [], background)
+    finally:
+        pool.close()
+    assert hits[0] == 4 * tracers.PART_NODES  # every part summed
+    assert max(seen) == most
