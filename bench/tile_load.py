@@ -16,7 +16,8 @@ and the clients ask for the viewer's tiles of the office.
 `--snapshot-every S` adds what `gmmap sim` grades with: every S s (at least 3x the last one's time
 apart, as the sim spaces them) the whole box at 0.1 m with every change (max_age 0), whose traces
 run in the background (tracers.BACKGROUND_MAX_WAIT_S); `--background off` queues their parts
-with the others', first come first served, as before.
+with the others', first come first served, as before c1e6a9b (but on every tracer thread, as an
+interactive trace's since 30d183a, not on all but one as then).
 
     nice -n 19 .venv/bin/python bench/tile_load.py [--clients 16] [--seconds 20] [--rate 20]
 """
