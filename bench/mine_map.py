@@ -18,7 +18,7 @@ from protocol import PoseGraphUpdate, ScanMessage, encode
 from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
 from services.sim.fleet import DEFAULT_RATE, SimulatedFleet, correction_interval, robot_name
 
-ROBOTS, DURATION_S = 2, 30.0
+WORLD, ROBOTS, DURATION_S = "mine", 2, 30.0
 FLEET = "default"
 CACHE = Path(__file__).resolve().parent / ".cache" / "mine_map.npz"
 
@@ -26,7 +26,7 @@ CACHE = Path(__file__).resolve().parent / ".cache" / "mine_map.npz"
 def build(seed: int = 0) -> tuple[list[bytes], list[bytes], np.ndarray]:
     """(scan messages, one final pose-graph update per robot, the last robot's final true position)."""
     scans = int(np.ceil(DURATION_S * DEFAULT_RATE))
-    fleet = SimulatedFleet("mine", ROBOTS, scans, DEFAULT_RATE, seed)
+    fleet = SimulatedFleet(WORLD, ROBOTS, scans, DEFAULT_RATE, seed)
     fit = FitConfig().for_dimension(3)
     messages, updates = [], []
     last_position = np.zeros(3)

@@ -13,6 +13,10 @@ estimate, then takes each robot's final pose-graph update (every node to its tru
 
 Times are processor seconds of the process (all its threads: one tracer, so one core) and wall
 seconds, the median of `--runs` maps; on a shared machine the processor time is the steadier.
+
+`--auroc SPC [SPC ...]`: instead, the region's quality at each of those samples per cell: AUROC
+of the served probabilities against the mine world's truth over the cells with any evidence (those
+of the first value), and the processor seconds of the cold region, one fresh map each.
 """
 
 from __future__ import annotations
@@ -31,8 +35,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import mine_map  # noqa: E402
 
 from gmm_core import Grid  # noqa: E402
+from gmm_core.metrics import auroc  # noqa: E402
+from gmm_core.occupancy import map_estimate  # noqa: E402
 from protocol import PoseGraphUpdate, ScanMessage, decode  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
+from services.sim.worlds import make_world  # noqa: E402
 
 REGION_CELLS = (200, 200, 40)
 RESOLUTION = 0.1
@@ -63,9 +70,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples-per-cell", type=float, default=4.0)
     parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument(
+        "--auroc", type=float, nargs="+", metavar="SPC", help="the region's AUROC at these samples per cell"
+    )
     args = parser.parse_args()
     messages, updates, position = mine_map.load()
     region = Grid(position - np.array(REGION_CELLS) * RESOLUTION / 2, RESOLUTION, REGION_CELLS)
+    if args.auroc:
+        return region_quality(messages, updates, region, args.auroc)
     last = decode(updates[-1], expect=PoseGraphUpdate)
     fleet(messages, updates, args.samples_per_cell).occupancy(region)  # numba's kernels, compiled or loaded
     rows = []
@@ -86,6 +98,23 @@ def main() -> None:
     )
     print(f"cold region:  {cpu_cold:.2f} s processor, {wall_cold:.2f} s wall (median of {args.runs})")
     print(f"correction of {len(last.poses)} nodes, to the answer: {cpu_fix:.2f} s processor, {wall_fix:.2f} s wall")
+
+
+def region_quality(messages: list[bytes], updates: list[bytes], region: Grid, samples_per_cell: list[float]) -> None:
+    """The region's AUROC against the mine world's truth and its cold processor seconds, per samples per cell."""
+    truth = make_world(mine_map.WORLD).ground_truth(region)
+    fleet(messages, updates, samples_per_cell[0]).counts(region)  # numba's kernels, compiled or loaded
+    observed = None
+    print(machine_line())
+    print("| samples per cell | AUROC against the world | cold region, processor s |\n|---|---|---|")
+    for spc in samples_per_cell:
+        fleet_map = fleet(messages, updates, spc)
+        start = time.process_time()
+        hits, misses = fleet_map.counts(region)
+        cpu = time.process_time() - start
+        observed = (hits + misses) > 0 if observed is None else observed
+        quality = auroc(map_estimate(hits, misses)[observed], truth[observed])
+        print(f"| {spc:g} | {quality:.5f} | {cpu:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

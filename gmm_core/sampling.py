@@ -5,12 +5,17 @@ resolution, and each sample carries the weight N pi_k / n_k. Summed along rays, 
 estimate the expected number of beams (Eq. 10) whatever n_k is: more samples only lower the
 Monte-Carlo variance, so maps at different resolutions agree in their counts.
 
-Samples come from a counter-based generator: the normals of sample j of a mixture are a hash of
-(the mixture's key, j), so any component's samples can be drawn alone, in any order. A query
-then draws only the components whose rays can reach its grid (gmm_core.scan_trace), and a
-sample is the same whichever others were drawn. Each normal is clipped to [-Z_MAX, Z_MAX]: every
-sample of a component lies in a box known before drawing it (`sample_bounds`), which is what
-makes skipping a component exact.
+Samples are randomised quasi-Monte-Carlo: the uniforms of sample j of a mixture are point j of the
+Kronecker sequence frac(c + j alpha) of the golden-ratio generalisation R_d (alpha_a = phi_d^-(a+1),
+phi_d the root of x^(d+1) = x + 1; Roberts 2018), shifted by c, a hash of the mixture's key
+(Cranley-Patterson rotation: each sample is uniform, so the counts stay unbiased). A component's
+samples are a run of the sequence, itself a shifted Kronecker sequence, so they cover its Gaussian
+more evenly than independent draws, whatever their number: less Monte-Carlo noise for the same
+samples (docs/BENCHMARKS.md, eleventh session). Sample j needs only (key, j), so any component's
+samples can be drawn alone, in any order. A query then draws only the components whose rays can
+reach its grid (gmm_core.scan_trace), and a sample is the same whichever others were drawn. Each
+normal is clipped to [-Z_MAX, Z_MAX]: every sample of a component lies in a box known before
+drawing it (`sample_bounds`), which is what makes skipping a component exact.
 """
 
 from __future__ import annotations
@@ -55,14 +60,19 @@ BOX_SLACK = 1e-6  # m added to sample boxes: round-off in placing a sample stays
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # splitmix64's increment
 
 
+# alpha_a of R_2 and R_3 in 64-bit fixed point: frac(c + j alpha) is then the integer sum mod 2^64,
+# exact for any j (in floating point, j alpha loses a bit of the fraction per doubling of j).
+_R2 = (np.uint64(0xC13FA9A902A6328F), np.uint64(0x91E10DA5C79E7B1C))
+_R3 = (np.uint64(0xD1B54A32D192ED03), np.uint64(0xABC98388FB8FAC02), np.uint64(0x8CB92BA72F3D8DD7))
+
+
 @njit(cache=True, inline="always")
-def _uniform(key, counter):
-    """The splitmix64 output `counter` of the stream `key`, as a float in (0, 1)."""
+def _splitmix(key, counter):
+    """The splitmix64 output `counter` of the stream `key` (64 bits)."""
     x = key + counter * _GOLDEN
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    x = x ^ (x >> np.uint64(31))
-    return (np.float64(x >> np.uint64(11)) + 0.5) * 2.0**-53
+    return x ^ (x >> np.uint64(31))
 
 
 # Acklam's rational approximation of the normal quantile (relative error below 1.2e-9): cheaper
@@ -116,11 +126,12 @@ def normal_quantile(p):
 
 @njit(cache=True, inline="always")
 def sample_normals(key, j, z):
-    """z[:d] = the standard normals of sample j of stream `key`: the quantiles of the uniforms
-    4j + a of the stream, each clipped to [-Z_MAX, Z_MAX]."""
-    base = np.uint64(4) * np.uint64(j)
-    for a in range(z.shape[0]):
-        z[a] = min(max(normal_quantile(_uniform(key, base + np.uint64(a))), -Z_MAX), Z_MAX)
+    """z[:d] = the standard normals of sample j of stream `key` (d = 2 or 3): the quantiles of point j
+    of R_d shifted by the stream's hash, each clipped to [-Z_MAX, Z_MAX]."""
+    d = z.shape[0]
+    for a in range(d):
+        x = _splitmix(key, np.uint64(a)) + np.uint64(j) * (_R3[a] if d == 3 else _R2[a])
+        z[a] = min(max(normal_quantile((np.float64(x >> np.uint64(11)) + 0.5) * 2.0**-53), -Z_MAX), Z_MAX)
 
 
 @dataclass(frozen=True)
