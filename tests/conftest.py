@@ -11,14 +11,19 @@ import pytest
 import zenoh
 
 from services.zenoh_config import zenoh_config
-from support.paths import DATA
+from support.numba_cache import drop_stale_kernels
+from support.paths import DATA, ROOT
 from support.processes import TestProcesses
 
 INTEGRATION = Path(__file__).parent / "integration"
+NUMBA_DIGEST = "gmmap/numba-sources"  # pytest's cache key: the numba modules' digest of the last session
 
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "integration: starts processes, Zenoh sessions, HTTP servers or a browser")
+    cache = getattr(config, "cache", None)
+    if cache is not None and not hasattr(config, "workerinput"):  # once, before pytest-xdist's workers start
+        cache.set(NUMBA_DIGEST, drop_stale_kernels(ROOT, cache.get(NUMBA_DIGEST, None)))
 
 
 def pytest_collection_modifyitems(items):
