@@ -254,8 +254,9 @@ class ScanSampler:
         return self.occupied.nbytes + self.free.nbytes
 
     def at(self, resolution: float, samples_per_cell: float | None = None) -> ScanSamples:
-        """The samples at `resolution`, `samples_per_cell` (default: the sampler's). The streams depend
-        on the resolution only, so fewer samples per cell draw a prefix of each component's samples."""
+        """The samples at `resolution`, `samples_per_cell` (default: the sampler's). The streams' keys
+        depend on the resolution only; a component's run of its stream starts after the samples of the
+        components before it, so other samples per cell draw other runs."""
         spc = self.samples_per_cell if samples_per_cell is None else samples_per_cell
         keys = self._keys.get(resolution)
         if keys is None:
