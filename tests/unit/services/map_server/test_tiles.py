@@ -58,12 +58,16 @@ def test_a_previous_state_older_than_max_stale_is_not_served(messages, monkeypat
     fleet.occupancy(GRID)
     fleet.add_scan(messages[20])
     (tile,) = fleet._tiles.values()
-    tile.lock.acquire()  # another request updating it, for 0.3 s
-    threading.Timer(0.3, tile.lock.release).start()
-    time.sleep(0.1)
-    start = time.monotonic()
-    answer = fleet.occupancy_answer(GRID)
-    assert time.monotonic() - start >= 0.15 and (answer.kind, answer.age) == ("updated", 0.0)
+    time.sleep(0.1)  # the previous state is now too old to serve
+    answers = []
+    with tile.lock:  # another request updating it
+        waiting = threading.Thread(target=lambda: answers.append(fleet.occupancy_answer(GRID)))
+        waiting.start()
+        waiting.join(0.3)
+        assert waiting.is_alive()  # it waits for that update rather than take the old state
+    waiting.join(10)
+    (answer,) = answers
+    assert (answer.kind, answer.age) == ("updated", 0.0)
     assert np.array_equal(answer.prob, fleet_of(messages[:21]).occupancy(GRID))
     assert fleet.cache_stats()["stale"] == 0
 
