@@ -1,6 +1,7 @@
 """Sampling and reconstruction: evidence counts, determinism, re-posing (Eq. 2)."""
 
 from decimal import Decimal, localcontext
+from functools import cache
 
 import numpy as np
 from scipy.special import ndtri
@@ -76,18 +77,24 @@ def test_empty_model_and_far_scans_add_nothing():
     assert h.sum() == 0 and m.sum() == 0
 
 
-def kronecker_normals(key: int, j: int, dim: int) -> np.ndarray:
-    """The normals of sample j of stream `key`, in plain Python: point j of the Kronecker sequence
-    R_dim (alpha_a = phi^-(a+1), phi the positive root of x^(dim+1) = x + 1, solved here to 40
-    digits), in 64-bit fixed point, shifted by splitmix64 output a of the stream; through scipy's
-    normal quantile, clipped to +-Z_MAX."""
-    mask = (1 << 64) - 1
+@cache
+def kronecker_alphas(dim: int) -> list[int]:
+    """alpha_a = phi^-(a+1) of R_dim in 64-bit fixed point, phi the positive root of x^(dim+1) = x + 1
+    solved here to 40 digits."""
     with localcontext() as context:
         context.prec = 40
         phi = Decimal(1.3)
         for _ in range(60):  # Newton on x^(dim+1) - x - 1
             phi -= (phi ** (dim + 1) - phi - 1) / ((dim + 1) * phi**dim - 1)
-        alphas = [int((1 / phi ** (a + 1)) % 1 * 2**64) for a in range(dim)]
+        return [int((1 / phi ** (a + 1)) % 1 * 2**64) for a in range(dim)]
+
+
+def kronecker_normals(key: int, j: int, dim: int) -> np.ndarray:
+    """The normals of sample j of stream `key`, in plain Python: point j of the Kronecker sequence
+    R_dim (kronecker_alphas), shifted by splitmix64 output a of the stream; through scipy's normal
+    quantile, clipped to +-Z_MAX."""
+    mask = (1 << 64) - 1
+    alphas = kronecker_alphas(dim)
 
     def splitmix(counter):
         x = (key + counter * 0x9E3779B97F4A7C15) & mask
