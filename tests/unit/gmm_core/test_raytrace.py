@@ -76,6 +76,22 @@ def test_free_rays_add_only_misses_and_counts_are_additive():
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("n_chunks", [1, 3])
+def test_rays_that_miss_the_grid_add_nothing(dim, n_chunks):
+    # A ray that misses runs on as a ray of weight 0 into the first cell a chunk holds (one exit
+    # for numba's reference counts): neither that cell nor any other may gain anything from it,
+    # on a grid small enough to trace in place and on one whose chunks fill slab buffers.
+    rng = np.random.default_rng(20 + dim)
+    for side in (9, int(raytrace.SORT_MIN_CELLS ** (1 / dim)) + 1):
+        grid = Grid(np.zeros(dim), 1.0 / side, (side,) * dim)
+        origins = rng.uniform(2.0, 3.0, (3, dim))  # every ray stays in [2, 4]^dim, beside the grid
+        ends = rng.uniform(2.0, 4.0, (200, dim))
+        is_hit = rng.random(200) < 0.5
+        hits, misses = chunked(grid, origins, rng.integers(0, 3, 200), ends, np.ones(200), is_hit, n_chunks)
+        assert not hits.any() and not misses.any()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("big", [False, True], ids=["in-cache", "sorted"])
 def test_chunks_match_brute_force_and_each_other(dim, big):
     """Chunked tracing (one per numba thread) on small grids and on grids big enough that rays are
