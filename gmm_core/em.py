@@ -218,10 +218,12 @@ def _hash_grid(points, n_components, max_cells):
 
 
 @njit(cache=True)
-def _cell_of(x, lo, cell, dims):
+def _cell_of(points, p, lo, cell, dims):
+    # points and a row number, not the row points[p]: a row view costs an atomic increment and
+    # decrement of the array's reference count per point.
     flat = 0
     for a in range(dims.shape[0]):
-        i = int((x[a] - lo[a]) / cell)
+        i = int((points[p, a] - lo[a]) / cell)
         i = min(max(i, 0), dims[a] - 1)
         flat = flat * dims[a] + i
     return flat
@@ -349,7 +351,7 @@ def _block_cell_order(points, n_blocks, lo, cell, dims):
     key = np.empty(n, dtype=np.int64)
     first = np.zeros(n_blocks * n_cells + 1, dtype=np.int64)
     for i in range(n):
-        key[i] = (i % n_blocks) * n_cells + _cell_of(points[i], lo, cell, dims)
+        key[i] = (i % n_blocks) * n_cells + _cell_of(points, i, lo, cell, dims)
         first[key[i] + 1] += 1
     for c in range(n_blocks * n_cells):
         first[c + 1] += first[c]

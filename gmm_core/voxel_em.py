@@ -108,16 +108,43 @@ def _grown(table, n_voxels):
 
 
 @njit(cache=True)
-def count_voxels(points, size):
-    """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them, in one pass)."""
+def _numbered(keys):
+    """Each key's number among the distinct keys, in the order they first come (n,), and how many
+    distinct keys there are: one hash probe per key."""
+    numbers = np.empty(keys.shape[0], dtype=np.int64)
     table, shift = _hash_table(_FIRST_TABLE_BITS)
-    count = 0
-    for i in range(points.shape[0]):
-        if _voxel_number(table, shift, _voxel_key(points, i, points.shape[1], size, np.inf), count) == count:
+    i, count = 0, 0
+    while i < keys.shape[0]:
+        # The table grows here, between calls: an array assigned in a loop costs numba an atomic
+        # increment and decrement of its reference count per pass (docs/BENCHMARKS.md, twelfth
+        # session), so the loop over the keys does not assign it.
+        i, count = _number_until_full(keys, i, table, shift, numbers, count)
+        if i < keys.shape[0]:
+            table, shift = _grown(table, count)
+    return numbers, count
+
+
+@njit(cache=True)
+def _number_until_full(keys, i, table, shift, numbers, count):
+    """_numbered's numbers of keys i, i + 1, ... until the last key or a table over half full;
+    returns the next key and the count so far."""
+    while i < keys.shape[0]:
+        numbers[i] = _voxel_number(table, shift, keys[i], count)
+        if numbers[i] == count:
             count += 1
-            if 2 * count > table.shape[0]:
-                table, shift = _grown(table, count)
-    return count
+        i += 1
+        if 2 * count > table.shape[0]:
+            break
+    return i, count
+
+
+@njit(cache=True)
+def count_voxels(points, size):
+    """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them)."""
+    keys = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf)
+    return _numbered(keys)[1]
 
 
 @njit(cache=True)
@@ -139,7 +166,7 @@ def _finite_mean(points):
 def _voxel_statistics(points, voxel_size, shift, near_range):
     """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
     `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
-    its key (M,), voxels in the order of their first point: one pass, one hash probe per point.
+    its key (M,), voxels in the order of their first point: one hash probe per point.
     The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
     precise."""
     # The dimension as a constant in each branch: the loops over the axes compile unrolled, 1.5x
@@ -154,20 +181,16 @@ def _voxel_sums(points, d, voxel_size, shift, near_range):
     """_voxel_statistics of (n, d) points."""
     far_squared = near_range * near_range
     n = points.shape[0]
-    table, table_shift = _hash_table(_FIRST_TABLE_BITS)
-    sums = np.empty((n, 1 + d + d * (d + 1) // 2))
-    keys = np.empty(n, dtype=np.int64)
-    x = np.empty(d)
-    n_voxels = 0
+    point_keys = np.empty(n, dtype=np.int64)
     for i in range(n):
-        key = _voxel_key(points, i, d, voxel_size, far_squared)
-        v = _voxel_number(table, table_shift, key, n_voxels)
-        if v == n_voxels:
-            sums[v] = 0.0
-            keys[v] = key
-            n_voxels += 1
-            if 2 * n_voxels > table.shape[0]:
-                table, table_shift = _grown(table, n_voxels)
+        point_keys[i] = _voxel_key(points, i, d, voxel_size, far_squared)
+    voxel_of, n_voxels = _numbered(point_keys)
+    sums = np.zeros((n_voxels, 1 + d + d * (d + 1) // 2))
+    keys = np.empty(n_voxels, dtype=np.int64)
+    x = np.empty(d)
+    for i in range(n):
+        v = voxel_of[i]
+        keys[v] = point_keys[i]
         for a in range(d):
             x[a] = points[i, a] - shift[a]
         sums[v, 0] += 1.0
@@ -177,7 +200,7 @@ def _voxel_sums(points, d, voxel_size, shift, near_range):
             for b in range(a, d):
                 sums[v, j] += x[a] * x[b]
                 j += 1
-    return sums[:n_voxels].copy(), keys[:n_voxels].copy()
+    return sums, keys
 
 
 @njit(cache=True)
@@ -187,20 +210,16 @@ def _count_cells(keys, d, ratio):
     count_voxels(points, ratio * voxel_size) from the voxels, not the points
     (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
     of two, as 4 and 0.25 m)."""
-    table, shift = _hash_table(_FIRST_TABLE_BITS)
     mask = (1 << _KEY_BITS) - 1
-    count = 0
+    cells = np.empty(keys.shape[0], dtype=np.int64)
     for v in range(keys.shape[0]):
         per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
         cell = 0
         for a in range(d):
             c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask
             cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // per_cell + _KEY_OFFSET
-        if _voxel_number(table, shift, cell, count) == count:
-            count += 1
-            if 2 * count > table.shape[0]:
-                table, shift = _grown(table, count)
-    return count
+        cells[v] = cell
+    return _numbered(cells)[1]
 
 
 @njit(cache=True)

@@ -63,7 +63,7 @@ def test_sparse_e_step_matches_the_dense_one(dim):
     weights, means, covs = mix.weights, mix.means, mix.covariances
     k = len(weights)
     lo, cell, dims = em._hash_grid(points, k, len(points))
-    cells = np.array([em._cell_of(x, lo, cell, dims) for x in points])
+    cells = np.array([em._cell_of(points, i, lo, cell, dims) for i in range(len(points))])
     order = np.argsort(cells, kind="stable")
     x, cells = points[order], cells[order]
     features = em._features(x)
