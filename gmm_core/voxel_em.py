@@ -2,9 +2,9 @@
 
 Three steps:
 
-1. One pass over the points sums [1, x, x x^T] per voxel of size `voxel_size` (a hash table,
-   one probe per point: the lidar clouds here come unordered, so runs of points in one voxel
-   are too rare to pay for a check).
+1. The points' voxels of size `voxel_size` are numbered (a hash table, one probe per point: the
+   lidar clouds here come unordered, so runs of points in one voxel are too rare to pay for a
+   check) and [1, x, x x^T] is summed per voxel.
 2. Top-down splitting of those voxels (hierarchical, as Eckart et al., CVPR 2016, ref. [10] of
    the paper): the group with the largest scatter (sum of squared distances to its mean, what
    k-means minimises) is cut at its mean across its principal axis until there are K groups;
