@@ -7,6 +7,7 @@ import ctypes.util
 import os
 import signal
 import sys
+import time
 
 
 def cpu_cores() -> int:
@@ -39,6 +40,19 @@ def cpu_shares(before: tuple[int, int, int] | None, after: tuple[int, int, int] 
     if total <= 0:
         return None
     return {name: round(t / total, 3) for name, t in zip(("busy", "idle", "steal"), ticks)}
+
+
+def loop_rate(seconds: float = 0.25) -> float:
+    """Millions of iterations per second of a bare Python loop on the calling thread, for about
+    `seconds`: how fast one core runs this interpreter now. On a shared VM it halves when other
+    guests load the host's memory and caches, which /proc/stat's stolen time does not show
+    (docs/RELIABILITY.md, twelfth session); measure it while the machine is otherwise at rest."""
+    count, start = 0, time.perf_counter()
+    end = start + seconds
+    while (now := time.perf_counter()) < end:
+        for _ in range(10_000):
+            count += 1
+    return count / (now - start) / 1e6
 
 
 def _libc_malloc_trim():

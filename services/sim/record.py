@@ -49,7 +49,7 @@ class RunRecord:
     components: dict[str, int] = field(default_factory=dict)
     agent_exit: dict[str, int] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)
-    host_cpu: dict[str, float] | None = None  # services.host.cpu_shares over the drive
+    host_cpu: dict[str, float] | None = None  # services.host.cpu_shares over the drive, and loop_rate before it
     server_rss: list[tuple[float, int]] = field(default_factory=list)  # (epoch s, resident bytes) while it ran
     restart_s: float | None = None  # from a restart on the run's data directory to serving every node
 

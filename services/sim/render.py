@@ -128,7 +128,13 @@ def markdown(r: SimReport) -> str:
         ("CPU s: server / agents / harness", cpu),
         (
             "the machine's CPU while driving: busy / idle / stolen by other guests",
-            " / ".join(f"{r.host_cpu[k]:.0%}" for k in ("busy", "idle", "steal")) if r.host_cpu else "-",
+            " / ".join(f"{r.host_cpu[k]:.0%}" for k in ("busy", "idle", "steal"))
+            if r.host_cpu and "busy" in r.host_cpu
+            else "-",
+        ),
+        (
+            "a bare Python loop on one core just before the drive (M iterations/s; falls on a busy host)",
+            _fmt(r.host_cpu.get("loop_rate_before"), 3) if r.host_cpu else "-",
         ),
         ("faster than real time (simulated s x cores / CPU s of server + agents)", f"{_fmt(r.realtime_factor, 3)}x"),
         ("schedule slip (last scan later than planned, s)", _fmt(r.schedule_slip_s, 3)),

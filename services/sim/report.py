@@ -103,8 +103,10 @@ class SimReport:
     tile_age_max_s: float | None
     # processor time
     cpu_s: dict[str, float]  # "server", "agents", "harness"
-    # The machine's CPU time while the robots drove, as fractions "busy", "idle", "steal" (Linux; None
-    # elsewhere): on a shared VM, the share stolen by other guests says how many cores the run had.
+    # The machine's CPU time while the robots drove, as fractions "busy", "idle", "steal" (Linux; absent
+    # elsewhere): on a shared VM, the share stolen by other guests says how many cores the run had;
+    # "loop_rate_before": millions of iterations per second of a bare Python loop just before the drive
+    # (services.host.loop_rate), which also falls when other guests slow the host without stealing.
     host_cpu: dict[str, float] | None
     realtime_factor: float
     schedule_slip_s: float | None

@@ -36,7 +36,7 @@ import numpy as np
 
 from gmm_core import Grid
 from services.config import GmmapConfig
-from services.host import child_pids, cpu_cores, cpu_shares, cpu_ticks, die_with_parent
+from services.host import child_pids, cpu_cores, cpu_shares, cpu_ticks, die_with_parent, loop_rate
 from services.http_client import Connection, HttpClient
 from services.sim import plots
 from services.sim.fleet import SimSource, SimulatedFleet, correction_interval, robot_name
@@ -274,6 +274,7 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
             )
         group_of = {names[i]: f"robots-{g}" for g, members in enumerate(groups) for i in members}
         wait_prepared(procs, start, sorted(set(group_of.values())))
+        loop_rate_before = loop_rate()  # the robots wait for "go", no client asks yet: the host's own speed
         if o.http_clients:
             clients = TileClients(http, tile_urls(grid), o.http_clients)
 
@@ -318,7 +319,10 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
                 stored.refresh()
                 time.sleep(0.2)
             published.n, stored.n = tap.counts()
-        record.host_cpu = cpu_shares(host_before, cpu_ticks())
+        record.host_cpu = {
+            **(cpu_shares(host_before, cpu_ticks()) or {}),
+            "loop_rate_before": round(loop_rate_before, 2),
+        }
         driving.set()
         snapshotter.join()
         if clients is not None:

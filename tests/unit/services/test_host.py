@@ -1,4 +1,4 @@
-"""What a service asks of its machine: cores, freed memory handed back to the OS, and how busy the machine was."""
+"""What a service asks of its machine: cores, freed memory handed back, how busy and how fast it was."""
 
 import sys
 import threading
@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from services.host import cpu_cores, cpu_shares, cpu_ticks, release_free_memory
+from services.host import cpu_cores, cpu_shares, cpu_ticks, loop_rate, release_free_memory
 
 
 def resident_mib() -> float:
@@ -16,6 +16,15 @@ def resident_mib() -> float:
 
 def test_cpu_cores_is_positive():
     assert cpu_cores() >= 1
+
+
+def test_loop_rate_counts_iterations_for_about_the_time_asked():
+    start = time.perf_counter()
+    rate = loop_rate(0.05)
+    took = time.perf_counter() - start
+    # At least one chunk of 10,000 iterations ran, and no more than one chunk past the end.
+    assert 0.05 <= took < 1.0
+    assert 0.01 / took <= rate < 1e4
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim and /proc")
