@@ -168,15 +168,14 @@ def _trace_ray(ox, oy, oz, ex, ey, ez, w, is_hit, grid_origin, to_cells, dims, l
     # crosses nothing from the first cell held. With one exit, numba's reference counts of cells,
     # hits and misses pair up and are pruned; an early return left three atomic increments and
     # three decrements a ray, about 15 % of a 3D ray's time (docs/BENCHMARKS.md).
-    missed = t0 > t1
-    if missed:
-        t0, t1, w = 0.0, 0.0, 0.0
     x, x_last, step_x, bx = _axis(uox, udx, t0, t1, nx)
     y, y_last, step_y, by = _axis(uoy, udy, t0, t1, ny)
     z, z_last, step_z, bz = _axis(uoz, udz, t0, t1, nz)
-    if missed:
-        x, y, z = np.int64(lo[0]), np.int64(lo[1]), np.int64(lo[2])
-        x_last, y_last, z_last = x, y, z
+    if t0 > t1:
+        w = 0.0
+        x = x_last = np.int64(lo[0])
+        y = y_last = np.int64(lo[1])
+        z = z_last = np.int64(lo[2])
     n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
     tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
     cells[0] = (z * ny + y) * nx + x - offset
