@@ -53,15 +53,23 @@ def check_variance(variance: float, field: str = "variance") -> float:
     return variance
 
 
+def class_bounds(variance: float) -> tuple[np.float64, np.float64]:
+    """(free_max, occupied_min) = (1 -+ sqrt(1 - 4 sigma^2)) / 2 of Eq. 12: a cell is FREE for p <=
+    free_max and p < 0.5, OCCUPIED for p >= occupied_min and p > 0.5. Float64 scalars, so float32
+    probabilities are compared in double precision."""
+    check_variance(variance)
+    half_band = 0.5 * np.sqrt(np.float64(1.0 - 4.0 * variance))
+    return 0.5 - half_band, 0.5 + half_band
+
+
 def classify(prob: np.ndarray, variance: float) -> np.ndarray:
     """OCCUPIED / FREE / UNKNOWN by the thresholds (1 ± sqrt(1 - 4 sigma^2)) / 2 of Eq. 12.
 
     A cell whose Bernoulli variance p(1 - p) exceeds `variance` stays UNKNOWN, and so does
     p = 0.5, the prior, whatever the band.
     """
-    check_variance(variance)
-    half_band = 0.5 * np.sqrt(1.0 - 4.0 * variance)
+    free_max, occupied_min = class_bounds(variance)
     out = np.full(np.shape(prob), UNKNOWN, dtype=np.int8)
-    out[(prob >= 0.5 + half_band) & (prob > 0.5)] = OCCUPIED
-    out[(prob <= 0.5 - half_band) & (prob < 0.5)] = FREE
+    out[(prob >= occupied_min) & (prob > 0.5)] = OCCUPIED
+    out[(prob <= free_max) & (prob < 0.5)] = FREE
     return out

@@ -19,12 +19,13 @@ as its freest one.
 
 from __future__ import annotations
 
-import io
+import struct
+import zlib
 
 import numpy as np
-from PIL import Image
+from numba import njit
 
-from gmm_core.occupancy import DEFAULT_VARIANCE, FREE, OCCUPIED, UNKNOWN, classify
+from gmm_core.occupancy import DEFAULT_VARIANCE, FREE, OCCUPIED, UNKNOWN, class_bounds
 
 CLASS_GREY = {FREE: 255, OCCUPIED: 0, UNKNOWN: 128}  # 128: the grey of p = 0.5 in the probability picture
 
@@ -36,22 +37,41 @@ def top_down_probability(prob: np.ndarray) -> np.ndarray:
 
 
 def top_down_classes(prob: np.ndarray, variance: float) -> np.ndarray:
-    """The Eq. 12 classes of a [iz, iy, ix] probability map seen from above, [iy, ix] (rule in the
-    module docstring). Some voxel is occupied exactly when the column's most occupied one is, and some
-    is free exactly when its freest one is (each class is one threshold on p), so only those two are
-    classified: the same classes as voxel by voxel, without classifying every voxel."""
-    occupied = classify(prob.max(axis=0), variance) == OCCUPIED
-    free = classify(prob.min(axis=0), variance) == FREE
-    return np.where(occupied, OCCUPIED, np.where(free, FREE, UNKNOWN)).astype(np.int8)
+    """The Eq. 12 classes of a 2D map, or of a [iz, iy, ix] map seen from above (rule in the module
+    docstring), [iy, ix]."""
+    return _labels(prob, variance, np.int8, {c: c for c in CLASS_GREY})
 
 
 def class_grey(prob: np.ndarray, variance: float = DEFAULT_VARIANCE) -> np.ndarray:
     """[iy, ix] grey levels of the Eq. 12 classes of a 2D or 3D probability map, CLASS_GREY's."""
-    classes = top_down_classes(prob, variance) if prob.ndim == 3 else classify(prob, variance)
-    grey = np.full(classes.shape, CLASS_GREY[UNKNOWN], dtype=np.uint8)
-    grey[classes == FREE] = CLASS_GREY[FREE]
-    grey[classes == OCCUPIED] = CLASS_GREY[OCCUPIED]
-    return grey
+    return _labels(prob, variance, np.uint8, CLASS_GREY)
+
+
+def _labels(prob: np.ndarray, variance: float, dtype, label: dict[int, int]) -> np.ndarray:
+    """[iy, ix] label[class] of each column's class, in one pass over the cells: a server draws a
+    tile's picture on every change of it, and numpy's masks took 1.1 ms of a 256 x 256 tile
+    (docs/BENCHMARKS.md, thirteenth session)."""
+    free_max, occupied_min = class_bounds(variance)
+    columns = prob if prob.ndim == 3 else prob[None]
+    out = np.empty(columns.shape[1:], dtype)
+    _column_labels(columns, free_max, occupied_min, label[FREE], label[OCCUPIED], label[UNKNOWN], out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _column_labels(columns, free_max, occupied_min, free, occupied, unknown, out):
+    """out[iy, ix]: `occupied` if a voxel of column (iy, ix) is, else `free` if one is, else `unknown`."""
+    for iy in range(columns.shape[1]):
+        for ix in range(columns.shape[2]):
+            label = unknown
+            for iz in range(columns.shape[0]):
+                p = columns[iz, iy, ix]
+                if p >= occupied_min and p > 0.5:
+                    label = occupied
+                    break
+                if p <= free_max and p < 0.5:
+                    label = free
+            out[iy, ix] = label
 
 
 def probability_grey(prob: np.ndarray) -> np.ndarray:
@@ -61,24 +81,28 @@ def probability_grey(prob: np.ndarray) -> np.ndarray:
     return np.round(255.0 * (1.0 - np.clip(prob, 0.0, 1.0))).astype(np.uint8)
 
 
-def grey_image(grey: np.ndarray) -> Image.Image:
-    """An [iy, ix] grid of grey levels as an image, north up."""
-    return Image.fromarray(grey[::-1], mode="L")
+def _png(grey: np.ndarray) -> bytes:
+    """An [iy, ix] grid of grey levels as an 8-bit greyscale PNG, north up: rows unfiltered, deflated
+    at zlib's fastest level (a 256 x 256 tile of classes in 0.13 against PIL's 0.53 ms, and smaller:
+    rows of three grey levels compress well without PNG's filters; docs/BENCHMARKS.md)."""
+    height, width = grey.shape
+    rows = np.zeros((height, width + 1), np.uint8)  # each row: filter type 0 (none), then its pixels
+    rows[:, 1:] = grey[::-1]
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8 bits, grey, deflate, no interlace
+    return (
+        b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", zlib.compress(rows, 1)) + _chunk(b"IEND", b"")
+    )
 
 
-def _png(image: Image.Image) -> bytes:
-    # zlib's fastest level: a 256 x 256 tile of classes in 0.26 against 0.59 ms at the default, 30 %
-    # more bytes (813 against 626): tiles of three classes are small either way.
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG", compress_level=1)
-    return buffer.getvalue()
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
 def occupancy_png(prob: np.ndarray, variance: float = DEFAULT_VARIANCE) -> bytes:
     """The Eq. 12 classes of a 2D or 3D map with sigma^2 = `variance` in [0, 0.25], as a PNG."""
-    return _png(grey_image(class_grey(prob, variance)))
+    return _png(class_grey(prob, variance))
 
 
 def probability_png(prob: np.ndarray) -> bytes:
     """The probabilities of a 2D or 3D map as a PNG, grey = 1 - p."""
-    return _png(grey_image(probability_grey(prob)))
+    return _png(probability_grey(prob))

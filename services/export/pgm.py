@@ -19,12 +19,11 @@ show it (services.render: a column is occupied if any voxel is, free if none is 
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 
 from gmm_core import Grid
-from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, classify
+from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, class_bounds
 from services.render import top_down_classes
 
 SHADE = {OCCUPIED: 0, FREE: 254, UNKNOWN: 205}  # map_saver's trinary pixels
@@ -34,7 +33,7 @@ FREE_THRESH = 0.196  # read back: occ = 1/255 < 0.196 <= 50/255 (unknown's)
 
 def map_classes(prob: np.ndarray, variance: float) -> np.ndarray:
     """[iy, ix] Eq. 12 classes of a 2D map, or of a 3D map seen from above."""
-    return top_down_classes(prob, variance) if prob.ndim == 3 else classify(prob, variance)
+    return top_down_classes(prob, variance)
 
 
 def pgm_bytes(classes: np.ndarray) -> bytes:
@@ -48,11 +47,11 @@ def pgm_bytes(classes: np.ndarray) -> bytes:
 
 def map_yaml(image: str, grid: Grid, variance: float) -> str:
     """The map_server YAML of the PGM file `image` (a path relative to the YAML's folder)."""
-    half_band = 0.5 * math.sqrt(1.0 - 4.0 * variance)
+    free_max, occupied_min = class_bounds(variance)
     x, y = (float(v) for v in grid.origin[:2])
     return (
-        f"# gmmap export: the classes of Eq. 12 at sigma^2 = {variance!r}: free for p <= {0.5 - half_band:.6g}, "
-        f"occupied for p >= {0.5 + half_band:.6g}\n"
+        f"# gmmap export: the classes of Eq. 12 at sigma^2 = {variance!r}: free for p <= {free_max:.6g}, "
+        f"occupied for p >= {occupied_min:.6g}\n"
         + (
             f"# a 3D map seen from above, z {float(grid.origin[2])!r} .. {float(grid.upper[2])!r} m\n"
             if grid.dim == 3

@@ -4,8 +4,8 @@ numba compiles (or loads from its cache) a kernel at its first call, under the i
 in a fresh server the first decoded scans and the first tile waited about 0.6 s for it
 (decoding, samplers, tracing, Eq. 11), while the robots' first scans queued behind them
 (docs/RELIABILITY.md, "Eighth session"). `warm_kernels` makes those first calls on a map of its
-own, before the server subscribes or listens: the same code paths as ingest and a tile, in 2D
-and 3D, with both scan encodings and a pose-graph update.
+own, before the server subscribes or listens: the same code paths as ingest and a tile (and its
+picture), in 2D and 3D, with both scan encodings and a pose-graph update.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 
 from gmm_core import Grid, Mixture, Pose, ScanModel
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode
+from services.render import occupancy_png
 
 from .fleet_map import FleetMap
 from .nodes import ScanEntry
@@ -44,7 +45,11 @@ def warm_kernels() -> float:
             # As ingest adds them: the entries, with the models it decoded.
             fleet_map.add_entries([ScanEntry.of(*scan) for scan in scans], [msg.model for msg, _, _ in scans])
             grid = Grid(np.full(dim, -2.0), 0.5, (8,) * dim)
-            fleet_map.occupancy(grid)
+            prob = fleet_map.occupancy(grid)
+            (
+                occupancy_png(prob),
+                occupancy_png(prob[1:, 1:]),
+            )  # a tile's picture, of a whole tile and of a layer's window
             moved = Pose(np.eye(dim), np.full(dim, 0.6))
             fleet_map.apply_poses(PoseGraphUpdate(_FLEET, _ROBOT, 1, ((0, moved), (1, moved))))
             fleet_map.occupancy(grid)  # the moved nodes traced out and in again

@@ -82,10 +82,15 @@ def reference_class_grey(prob: np.ndarray, variance: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("shape", [(9, 13), (5, 9, 13)])
-def test_classes_match_the_plain_rule_on_random_maps(shape):
+@pytest.mark.parametrize("window", [False, True])  # a server's tile: a window of its layer's array
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_classes_match_the_plain_rule_on_random_maps(shape, window, dtype):
     rng = np.random.default_rng(7)
-    prob = rng.uniform(0, 1, shape).astype(np.float32)
+    prob = rng.uniform(0, 1, shape).astype(dtype)
     prob[rng.uniform(size=shape) < 0.3] = 0.5
+    prob[rng.uniform(size=shape) < 0.1] = 0.7  # on the default's threshold: compared in double precision
+    if window:
+        prob = prob[..., 1:-2, 3:]
     for variance in (0.0, 0.03, DEFAULT_VARIANCE, 0.2, 0.25):
         assert np.array_equal(pixels(occupancy_png(prob, variance)), reference_class_grey(prob, variance))
 
