@@ -47,7 +47,7 @@ def class_grey(prob: np.ndarray, variance: float = DEFAULT_VARIANCE) -> np.ndarr
     return _labels(prob, variance, np.uint8, CLASS_GREY)
 
 
-def _labels(prob: np.ndarray, variance: float, dtype, label: dict[int, int]) -> np.ndarray:
+def _labels(prob: np.ndarray, variance: float, dtype: type, label: dict[int, int]) -> np.ndarray:
     """[iy, ix] label[class] of each column's class, in one pass over the cells: a server draws a
     tile's picture on every change of it, and numpy's masks took 1.1 ms of a 256 x 256 tile
     (docs/BENCHMARKS.md, thirteenth session)."""

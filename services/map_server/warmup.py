@@ -46,10 +46,8 @@ def warm_kernels() -> float:
             fleet_map.add_entries([ScanEntry.of(*scan) for scan in scans], [msg.model for msg, _, _ in scans])
             grid = Grid(np.full(dim, -2.0), 0.5, (8,) * dim)
             prob = fleet_map.occupancy(grid)
-            (
-                occupancy_png(prob),
-                occupancy_png(prob[1:, 1:]),
-            )  # a tile's picture, of a whole tile and of a layer's window
+            occupancy_png(prob)  # a tile's picture ...
+            occupancy_png(prob[1:, 1:])  # ... and a layer's window's (a strided view: compiled apart)
             moved = Pose(np.eye(dim), np.full(dim, 0.6))
             fleet_map.apply_poses(PoseGraphUpdate(_FLEET, _ROBOT, 1, ((0, moved), (1, moved))))
             fleet_map.occupancy(grid)  # the moved nodes traced out and in again
