@@ -25,8 +25,9 @@ from octomap_compare import aligned_bbox, machine_line
 from gmm_core.occupancy import FREE, OCCUPIED, classify
 from services.datasets import read_scans
 from services.export.octomap_tree import bt_bytes, ot_bytes
-from services.export.pgm import map_classes, pgm_bytes
+from services.export.pgm import pgm_bytes
 from services.export.ply import ply_bytes
+from services.render import top_down_classes
 from services.replay import replay
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "3d" / "kurt3d"
@@ -72,7 +73,7 @@ def main() -> None:
     theirs_s, theirs = best_of(args.repeat, lambda: octomap_bt(prob, grid))
     assert ours == theirs, "the .bt differs from OctoMap's own"
     ot_s, ot = best_of(args.repeat, lambda: ot_bytes(prob, grid, VARIANCE))
-    pgm_s, _ = best_of(args.repeat, lambda: pgm_bytes(map_classes(prob, VARIANCE)))
+    pgm_s, _ = best_of(args.repeat, lambda: pgm_bytes(top_down_classes(prob, VARIANCE)))
     ply_s, ply = best_of(args.repeat, lambda: ply_bytes(prob, grid, VARIANCE))
     print("| writer | seconds | bytes |")
     print("|---|---|---|")

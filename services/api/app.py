@@ -31,12 +31,12 @@ from starlette.staticfiles import StaticFiles
 from gmm_core.occupancy import DEFAULT_VARIANCE
 from protocol import MapReply, encode
 from services.export.octomap_tree import NOT_3D, bt_bytes, ot_bytes, reach_problem
-from services.export.pgm import map_classes, pgm_bytes
+from services.export.pgm import pgm_bytes
 from services.export.ply import ply_bytes
 from services.map_server.tiles import MAX_STALE_S, PATIENCE_S
 from services.map_server.tokens import TokenFile
 from services.map_server.tracers import TracersSaturated
-from services.render import occupancy_png, probability_png
+from services.render import occupancy_png, probability_png, top_down_classes
 
 from . import params
 from .auth import Access, BearerAuth, access_dependency
@@ -352,7 +352,7 @@ def create_app(
             elif format is Format.png:
                 body = occupancy_png(prob, sigma2) if shade is Shade.classes else probability_png(prob)
             elif format is Format.pgm:
-                body = pgm_bytes(map_classes(prob, sigma2))
+                body = pgm_bytes(top_down_classes(prob, sigma2))
             elif format is Format.bt:
                 body = bt_bytes(prob, grid, sigma2)
             elif format is Format.ot:

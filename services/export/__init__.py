@@ -11,8 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from services.render import top_down_classes
+
 from .octomap_tree import NOT_3D, bt_bytes, ot_bytes
-from .pgm import map_classes, map_yaml, pgm_bytes
+from .pgm import map_yaml, pgm_bytes
 from .ply import ply_bytes
 
 if TYPE_CHECKING:  # sources imports the HTTP API's limits, and the API imports these writers
@@ -45,7 +47,7 @@ def write_export(source: ExportMap, fmt: str, out: str | Path, variance: float) 
     check_dimension(fmt, source.grid.dim)
     paths = output_paths(fmt, out)
     if fmt == "pgm":
-        image = pgm_bytes(map_classes(source.prob, variance))
+        image = pgm_bytes(top_down_classes(source.prob, variance))
         contents = [image, map_yaml(paths[0].name, source.grid, variance).encode()]
     elif fmt == "bt":
         contents = [bt_bytes(source.prob, source.grid, variance)]

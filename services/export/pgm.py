@@ -24,16 +24,10 @@ import numpy as np
 
 from gmm_core import Grid
 from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, class_bounds
-from services.render import top_down_classes
 
 SHADE = {OCCUPIED: 0, FREE: 254, UNKNOWN: 205}  # map_saver's trinary pixels
 OCCUPIED_THRESH = 0.65  # read back: occ = 1 > 0.65
 FREE_THRESH = 0.196  # read back: occ = 1/255 < 0.196 <= 50/255 (unknown's)
-
-
-def map_classes(prob: np.ndarray, variance: float) -> np.ndarray:
-    """[iy, ix] Eq. 12 classes of a 2D map, or of a 3D map seen from above."""
-    return top_down_classes(prob, variance)
 
 
 def pgm_bytes(classes: np.ndarray) -> bytes:

@@ -20,13 +20,14 @@ from services.api import create_app
 from services.cli import main
 from services.datasets import read_scans
 from services.export.octomap_tree import bt_bytes
-from services.export.pgm import map_classes, pgm_bytes
+from services.export.pgm import pgm_bytes
 from services.export.ply import ply_bytes
 from services.export.sources import fetch, on_lattice
 from services.http_client import HttpClient
 from services.map_server.fleet_map import FleetMap
 from services.map_server.state import ServerState
 from services.map_server.tokens import TokenFile
+from services.render import top_down_classes
 from support.http_auth import write_tokens
 from support.net import get, metric, wait_for
 from support.octomap_trees import node_log_odds
@@ -133,7 +134,7 @@ def test_every_format_of_a_3d_server(server_3d, kurt3d_map, tmp_path):
     assert status == 200 and served == (tmp_path / "kurt3d.ot").read_bytes()
     whole = Grid.from_bbox(extent["lo"], extent["hi"], 0.25)  # pgm and ply: the extent as it is
     prob = kurt3d_map.occupancy(whole)
-    assert (tmp_path / "kurt3d.pgm").read_bytes() == pgm_bytes(map_classes(prob, 0.21))
+    assert (tmp_path / "kurt3d.pgm").read_bytes() == pgm_bytes(top_down_classes(prob, 0.21))
     assert (tmp_path / "kurt3d.ply").read_bytes() == ply_bytes(prob, whole, 0.21)
 
 
