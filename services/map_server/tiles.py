@@ -268,6 +268,7 @@ class TileCache:
                 lo_union, hi_union = np.minimum(lo, layer_lo), np.maximum(hi, layer_hi)
             else:
                 lo_union, hi_union = lo, hi
+            lo_union, hi_union = self._with_extent(lo_union, hi_union, res, robots)
             if np.prod(hi_union - lo_union) <= LAYER_MAX_CELLS:
                 if layer is not None:  # replaced by a larger layer, traced afresh at its first update
                     del self._tiles[key]
@@ -280,6 +281,20 @@ class TileCache:
             return self._new_tile(key, grid, robots, may_shed), None
         self._tiles.move_to_end(key)
         return tile, None
+
+    def _with_extent(
+        self, lo: np.ndarray, hi: np.ndarray, res: float, robots: tuple[str, ...] | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Cells lo .. hi of a layer to be made, grown to take in the map's extent (the viewer's first
+        screen: it fits the view to the map) while that stays within LAYER_MAX_CELLS: the viewer's
+        tiles then arrive as windows of one trace, where a layer grown tile by tile was traced afresh
+        at each growth (office, 20 robots: six times in its first half second, docs/RELIABILITY.md)."""
+        extent = self._nodes.extent(robots)
+        if extent is None:
+            return lo, hi
+        grown_lo = np.minimum(lo, np.floor(extent[0] / res).astype(np.int64))
+        grown_hi = np.maximum(hi, np.ceil(extent[1] / res).astype(np.int64))
+        return (grown_lo, grown_hi) if np.prod(grown_hi - grown_lo) <= LAYER_MAX_CELLS else (lo, hi)
 
     def _new_tile(self, key: tuple, grid: Grid, robots: tuple[str, ...] | None, may_shed: bool) -> Tile:
         """An empty tile cached under `key` (a request that would make one is shed first when it may be)."""

@@ -229,14 +229,15 @@ def viewer_tiles(resolution: float, side: int = 64) -> list[Grid]:
 
 
 def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages, monkeypatch):
-    """The viewer's tiles of a resolution are windows of one layer, grown as tiles are asked for:
-    a node is traced once for all of them. Their counts are those of tiles of their own but where
-    a ray passes a cell corner within round-off (traced from another grid origin); updated, the
-    windows have the bits of a fresh map's asked in the same order."""
+    """The viewer's tiles of a resolution are windows of one layer, made over the map's extent and
+    grown when a tile beyond it is asked for: a node is traced once for all of them. Their counts
+    are those of tiles of their own but where a ray passes a cell corner within round-off (traced
+    from another grid origin); updated, the windows have the bits of a fresh map's asked in the
+    same order."""
     fleet, alone = fleet_of(messages[:20]), fleet_of(messages[:20])
     tiled = viewer_tiles(0.1)
     layered = [fleet.occupancy(grid) for grid in tiled]
-    assert fleet.cache_stats()["tiles"] == 1 and 1 < fleet.cache_stats()["misses"] < len(tiled)  # grown as asked
+    assert fleet.cache_stats()["tiles"] == 1 and fleet.cache_stats()["misses"] == 1  # one trace for every tile
     monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)
     own = [alone.occupancy(grid) for grid in tiled]
     assert alone.cache_stats()["tiles"] == len(tiled)
@@ -253,6 +254,11 @@ def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages,
         assert np.array_equal(fleet.occupancy(grid), fresh.occupancy(grid))
     assert fleet.cache_stats()["updates"] == 1
     assert fleet.occupancy(tiled[3]) is fleet.occupancy(tiled[3])  # one window object per state: encoded once
+
+    beyond = Grid([40.0, 0.0], 0.1, (64, 64))  # past the map's extent: the layer grows to take it in
+    fleet.occupancy(beyond)
+    assert fleet.cache_stats()["tiles"] == 1 and fleet.cache_stats()["misses"] == 2
+    assert np.array_equal(fleet.occupancy(tiled[3]), fresh.occupancy(tiled[3]))
 
     off_lattice = Grid(GRID.origin + 0.05, 0.1, (64, 64))
     fleet.occupancy(off_lattice)
@@ -327,5 +333,5 @@ def test_a_request_that_waited_for_another_update_is_served_its_state(messages):
         with fleet._lock:
             tile.prob = made  # what that update published (a backlog left: not up to date)
     waiting.join(10)
-    assert answers[0].kind == "updated" and answers[0].prob is made and answers[0].age > 0
+    assert answers[0].kind == "updated" and answers[0].prob.base is made and answers[0].age > 0  # GRID: a window
     assert fleet.cache_stats()["updates"] == 0
