@@ -323,11 +323,14 @@ def run_fleet(config: GmmapConfig, workdir: Path) -> tuple[RunRecord, BeamReplay
             **(cpu_shares(host_before, cpu_ticks()) or {}),
             "loop_rate_before": round(loop_rate_before, 2),
         }
-        driving.set()
-        snapshotter.join()
+        # The tile clients ask while the robots drive: stopped before waiting for a snapshot under way,
+        # which otherwise stretched their window, by as long as that snapshot took, over the burst of
+        # the robots' final corrections in some runs and not in others (docs/RELIABILITY.md).
         if clients is not None:
             record.tile_latencies, record.tile_errors = clients.stop()
             clients = None
+        driving.set()
+        snapshotter.join()
         for g in sorted(set(group_of.values())):
             code = procs.stop(g, timeout=5)  # only one past the deadline is still running
             if code != 0:
