@@ -349,9 +349,13 @@ class TileCache:
         changes out, whether it is the first trace, the samples per cell of what it traces: None for
         the map's, which `full` asks for (for at most FULL_UPDATE_NODES nodes when `bounded`), and
         then the thinned nodes, at most `refine` (None: all), it traces again with every sample,
-        where they stand now). Bounded: the updates of HTTP requests (which may be served a previous
-        state meanwhile) and in the background; an in-process caller (patience None) and a request
-        for every change get every change, at every sample with idle tracers."""
+        where they stand now; and whether its parts give way to other traces'). Bounded: the updates
+        of HTTP requests (which may be served a previous state meanwhile) and in the background; an
+        in-process caller (patience None) and a request for every change get every change, at every
+        sample with idle tracers, in parts that give way (TracerPool.trace's `background`): such an
+        update may trace thousands of nodes. A bounded one traces a bounded number and holds its
+        tile meanwhile: giving way, a refinement begun on idle tracers kept the viewer's busiest
+        layer waiting for every other tile's update once load came back (docs/RELIABILITY.md)."""
         changes, seen, first = tile.changes, self._nodes.log.end, tile.prob is None
         afresh = first or tile.seen < self._nodes.log.start
         if afresh:
@@ -368,18 +372,18 @@ class TileCache:
             refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)}
         tile.dirty_since = None  # from here on, changes are left for the next update
         partial = seen < self._nodes.log.end  # MAX_UPDATE_NODES left changes for the next update
-        return afresh, nodes, changes, seen, partial, first, samples_per_cell, refined
+        return afresh, nodes, changes, seen, partial, first, samples_per_cell, refined, not bounded
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, partial, first, samples_per_cell, refined = work
+        afresh, nodes, changes, seen, partial, first, samples_per_cell, refined, background = work
         start = time.monotonic()
         with _held(tile.lock):
             try:
                 if afresh:
-                    self._trace_afresh(tile, nodes, samples_per_cell)
+                    self._trace_afresh(tile, nodes, samples_per_cell, background)
                 else:
-                    self._trace_changes(tile, nodes, samples_per_cell, refined)
+                    self._trace_changes(tile, nodes, samples_per_cell, refined, background)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -487,11 +491,13 @@ class TileCache:
                 self._shed += 1
                 raise TracersSaturated(load)
 
-    def _trace_afresh(self, tile: Tile, reaching: dict[NodeKey, Posed], samples_per_cell: float | None) -> None:
+    def _trace_afresh(
+        self, tile: Tile, reaching: dict[NodeKey, Posed], samples_per_cell: float | None, background: bool
+    ) -> None:
         """Counts of every node in `reaching`, replacing what the tile held."""
         counted = [posed.counted_with(samples_per_cell) for posed in reaching.values()]
         if counted:
-            tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [], background=samples_per_cell is None)
+            tile.hits, tile.misses = self._tracers.trace(tile.grid, counted, [], background)
         else:
             tile.hits, tile.misses = np.zeros(tile.grid.array_shape), np.zeros(tile.grid.array_shape)
         tile.held = {posed.key: posed for posed in counted}
@@ -503,10 +509,12 @@ class TileCache:
         changed: dict[NodeKey, Posed | None],
         samples_per_cell: float | None,
         refined: dict[NodeKey, Posed],
+        background: bool,
     ) -> None:
         """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile), tracing
         them with `samples_per_cell` (None: the map's), and trace the thinned nodes in `refined` again
-        with every sample, where they stand now.
+        with every sample, where they stand now; in parts that give way to other traces' when
+        `background`.
 
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
@@ -540,7 +548,6 @@ class TileCache:
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of
         # the tile moved (a big correction).
-        background = spc is None  # every sample: the busy updates' parts go first
         if 2 * len(moved) <= len(held):  # moved: taken out at their old pose
             hits, misses = self._tracers.trace(tile.grid, new, list(moved.values()), background)
             tile.hits += hits

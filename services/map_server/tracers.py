@@ -54,10 +54,10 @@ SPLIT_MAX_CELLS = 1 << 22  # a trace on a grid this large is one part (each part
 SATURATED_QUEUE_PER_THREAD = 8
 SATURATED_WAIT_S = 1.0
 PART_SECONDS_WEIGHT = 0.2  # of the latest part in the running mean of part times
-# Parts of background traces (every sample: a request for every change, or refining thinned nodes
-# while the tracers were idle) start only when no other part waits, or once the oldest has waited
-# this long: a viewer's busy update does not queue behind a graded snapshot of thousands of nodes,
-# and the snapshot still gets a turn every few seconds under any load.
+# Parts of background traces (those of unbounded tile updates: a request for every change, an
+# in-process caller) start only when no other part waits, or once the oldest has waited this long:
+# a viewer's update does not queue behind a graded snapshot of thousands of nodes, and the snapshot
+# still gets a turn every few seconds under any load.
 BACKGROUND_MAX_WAIT_S = 2.0
 TRACER_NICE = 5  # added to a tracer thread's nice value (CFS weight 335 against 1024 at nice 0)
 

@@ -156,9 +156,9 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # GRID and corner are tiles of their own
     afresh, trace_afresh = [], TileCache._trace_afresh
 
-    def traced_afresh(cache, tile, reaching, samples_per_cell):
+    def traced_afresh(cache, tile, *args):
         afresh.append((cache, tile.grid))
-        trace_afresh(cache, tile, reaching, samples_per_cell)
+        trace_afresh(cache, tile, *args)
 
     monkeypatch.setattr(TileCache, "_trace_afresh", traced_afresh)
     scans, models = fitted

@@ -78,13 +78,13 @@ def test_changes_during_an_update_wait_and_the_next_update_applies_them_at_once(
     fleet.add_scan(messages[20])
     updates, trace_changes = [], TileCache._trace_changes
 
-    def traced_changes(cache, tile, changed, samples_per_cell, refined):
+    def traced_changes(cache, tile, changed, *args):
         updates.append(sorted(key[1] for key in changed))
         if len(updates) == 1:  # three scans arrive while the first update traces
             for msg in messages[21:24]:
                 fleet.add_scan(msg)
             time.sleep(0.02)
-        trace_changes(cache, tile, changed, samples_per_cell, refined)
+        trace_changes(cache, tile, changed, *args)
 
     monkeypatch.setattr(TileCache, "_trace_changes", traced_changes)
     during = fleet.occupancy_answer(GRID)
@@ -335,3 +335,24 @@ def test_a_request_that_waited_for_another_update_is_served_its_state(messages):
     waiting.join(10)
     assert answers[0].kind == "updated" and answers[0].prob.base is made and answers[0].age > 0  # GRID: a window
     assert fleet.cache_stats()["updates"] == 0
+
+
+def test_only_an_unbounded_update_gives_way_to_other_traces(messages, monkeypatch):
+    """A bounded update (an HTTP request's, patience given) holds its tile while it traces a bounded
+    number of nodes: its parts do not give way to other traces', even at every sample on idle
+    tracers. A request for every change (max_age 0) may trace thousands: its parts give way."""
+    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
+    fleet = fleet_of(messages[:20])
+    flags, trace = [], TracerPool.trace
+
+    def traced(pool, grid, plus, minus, background=False):
+        flags.append(background)
+        return trace(pool, grid, plus, minus, background)
+
+    monkeypatch.setattr(TracerPool, "trace", traced)
+    assert fleet.occupancy_answer(GRID, patience=0.0).samples_per_cell == fleet.samples_per_cell  # every sample
+    fleet.add_scan(messages[20])
+    fleet.occupancy_answer(GRID, patience=0.0)
+    fleet.add_scan(messages[21])
+    fleet.occupancy_answer(GRID, max_age=0)
+    assert flags == [False, False, True]
