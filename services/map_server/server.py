@@ -38,6 +38,7 @@ from services.ros2.config import Ros2Config
 from services.stopping import StopSignal
 from services.zenoh_config import zenoh_config
 
+from .collector import freeze_survivors
 from .config import ServerConfig, split_address
 from .fleet_map import FleetMap
 from .ingest import Ingest
@@ -228,6 +229,7 @@ def run_server(
     quota = int(options.robot_quota_mb * 2**20) if options.robot_quota_mb > 0 else None
     ingest = Ingest(state, lambda key, payload: zenoh_side.publish(key, payload), quota)
     replayed = ingest.replay()
+    thaw = freeze_survivors()  # what survives a full collection is left out of the next: no growing pauses
     ingest.start()
     http = None
     ros_publisher = None
@@ -283,4 +285,5 @@ def run_server(
             flush=True,
         )
         store.close()
+        thaw()
     return 0
