@@ -24,7 +24,7 @@ from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
 from services.map_server.tracers import TracerLoad, TracersSaturated
 from services.render import occupancy_png, probability_png
-from support.browser import headless_chromium
+from support.browser import CENTRE, FREE_GREY, headless_chromium, screenshot
 from support.net import get, post
 from support.uvicorn_thread import Server
 
@@ -330,10 +330,8 @@ def test_viewer_asks_a_shed_tile_again_after_its_retry_after(server, tmp_path, m
         return answer(grid, robots, **kwargs)
 
     monkeypatch.setattr(fleet_map, "occupancy_answer", saturated_at_first)
-    shot = tmp_path / "viewer.png"
-    headless_chromium(tmp_path, f"--screenshot={shot}", server.url + "/")
-    grey = np.asarray(Image.open(shot).convert("RGB")).astype(int).mean(axis=2)[100:500, 150:650]
-    assert len(shed) == 8 and (grey > 235).mean() > 0.05, f"{len(shed)} shed, {(grey > 235).mean():.1%} free pixels"
+    free = (screenshot(tmp_path, f"{server.url}/").mean(axis=2)[CENTRE] > FREE_GREY).mean()
+    assert len(shed) == 8 and free > 0.05, f"{len(shed)} shed, {free:.1%} free pixels"
 
 
 @pytest.mark.skipif(
@@ -346,19 +344,15 @@ def test_viewer_asks_a_shed_tile_again_after_its_retry_after(server, tmp_path, m
 )
 def test_viewer_draws_the_map(server, tmp_path, query, free_at_least, occupied_at_least):
     """The Eq. 12 classes (the default layer, at the default and at a chosen variance) and the probabilities."""
-    shot = tmp_path / "viewer.png"
-    headless_chromium(tmp_path, f"--screenshot={shot}", f"{server.url}/{query}")
-    assert shot.exists(), "chromium wrote no screenshot"
-    image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    image = screenshot(tmp_path, f"{server.url}/{query}")
     assert image.shape[:2] == (600, 800)
-    grey = image.mean(axis=2)
-    centre = grey[100:500, 150:650]  # away from the panels at the corners
-    free = (centre > 235).mean()
+    centre = image.mean(axis=2)[CENTRE]
+    free = (centre > FREE_GREY).mean()
     occupied = (centre < 70).mean()
     assert free > free_at_least, f"only {free:.1%} free (near-white) map pixels: the map is not drawn"
     assert occupied > occupied_at_least, f"only {occupied:.2%} occupied (dark) map pixels"
     if "probability" not in query:  # classes: white, black or the grey of unknown, nothing between
-        plain = (image.max(axis=2) == image.min(axis=2))[100:500, 150:650]
+        plain = (image.max(axis=2) == image.min(axis=2))[CENTRE]
         assert np.isin(centre[plain], [0, 128, 255]).mean() > 0.999
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
     trajectory = (r > 180) & (g < 80) & (b < 120)  # the first robot's colour, #e6194b

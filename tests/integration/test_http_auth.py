@@ -18,7 +18,6 @@ import urllib.request
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from gmm_core import fit_scan
 from protocol import ScanMessage
@@ -26,7 +25,7 @@ from services.api import create_app
 from services.map_server.fleet_map import FleetMap
 from services.map_server.state import ServerState
 from services.map_server.tokens import TokenFile
-from support.browser import headless_chromium
+from support.browser import CENTRE, FREE_GREY, headless_chromium, screenshot
 from support.http_auth import make_certs, write_tokens
 from support.net import free_port, metric
 from support.paths import ROOT
@@ -367,13 +366,6 @@ def plain_server(fleet_map, secrets):
         yield s
 
 
-def screenshot(tmp_path, url: str) -> np.ndarray:
-    shot = tmp_path / "viewer.png"
-    headless_chromium(tmp_path, f"--screenshot={shot}", url)
-    assert shot.exists(), "chromium wrote no screenshot"
-    return np.asarray(Image.open(shot).convert("RGB")).astype(int)
-
-
 def robot_pixels(image: np.ndarray) -> tuple[int, int]:
     """Pixels of the first robot's colour (#e6194b) and of the second's (#0082c8)."""
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
@@ -386,8 +378,8 @@ def robot_pixels(image: np.ndarray) -> tuple[int, int]:
 @pytest.mark.parametrize("client, robots", [("ops", 2), ("dock", 1)])
 def test_viewer_with_a_token_in_the_address_draws_its_robots_map(plain_server, tmp_path, client, robots):
     image = screenshot(tmp_path, f"{plain_server.url}/#token={plain_server.tokens[client]}")
-    centre = image.mean(axis=2)[100:500, 150:650]
-    assert (centre > 235).mean() > 0.05, "the map is not drawn"
+    centre = image.mean(axis=2)[CENTRE]
+    assert (centre > FREE_GREY).mean() > 0.05, "the map is not drawn"
     assert (centre < 70).mean() > 0.0003, "no occupied cells drawn"
     first, second = robot_pixels(image)
     assert first > 100, "robot a's trajectory is not drawn"
