@@ -22,6 +22,7 @@ from services.api import create_app
 from services.map_server.fleet_map import FleetMap
 from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
+from services.map_server.tracers import TracerLoad, TracersSaturated
 from services.render import occupancy_png, probability_png
 from support.browser import CENTRE, FREE_GREY, headless_chromium, screenshot
 from support.net import get, post
@@ -311,6 +312,26 @@ def test_api_docs_render_offline(server, tmp_path):
     """Swagger UI's scripts come from the server itself: the page lists the API with no network beyond it."""
     dom = headless_chromium(tmp_path, "--dump-dom", f"{server.url}/docs").stdout.decode()
     assert "/v1/occupancy/points" in dom and "opblock" in dom, dom[-2000:]
+
+
+@pytest.mark.skipif(
+    shutil.which("chromium") is None, reason="Debian chromium is not on PATH (make test installs it when run as root)"
+)
+def test_viewer_asks_a_shed_tile_again_after_its_retry_after(server, tmp_path, monkeypatch):
+    """A tile answered 503 (the tracers saturated, as a cold server's first screen may find them) is
+    asked again after its Retry-After, not left blank until the map changes."""
+    fleet_map, shed = server.state.fleet_map, []
+    answer = fleet_map.occupancy_answer
+
+    def saturated_at_first(grid, robots=None, **kwargs):
+        if len(shed) < 8:
+            shed.append(grid)
+            raise TracersSaturated(TracerLoad(threads=2, queued=16, running=2, wait_s=0.5))  # Retry-After: 1
+        return answer(grid, robots, **kwargs)
+
+    monkeypatch.setattr(fleet_map, "occupancy_answer", saturated_at_first)
+    free = (screenshot(tmp_path, f"{server.url}/").mean(axis=2)[CENTRE] > FREE_GREY).mean()
+    assert len(shed) == 8 and free > 0.05, f"{len(shed)} shed, {free:.1%} free pixels"
 
 
 @pytest.mark.skipif(
