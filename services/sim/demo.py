@@ -8,11 +8,14 @@ import sys
 import tempfile
 from pathlib import Path
 
+from gmm_core import FitConfig
+from services.agent.config import AgentConfig
 from services.http_client import HttpClient
 from services.map_server.config import ServerConfig
 from services.sim.config import SimConfig
 from services.sim.fleet import SimSource, robot_name
 from services.sim.processes import Processes, free_port, http_security_args
+from services.sim.warmup import warm_fleet_kernels
 from services.stopping import StopSignal
 
 ROBOTS = 3
@@ -34,6 +37,14 @@ def run_demo(server: ServerConfig, clients: SimConfig, duration: float) -> int:
 
     server.check_http()  # refused here, before any process starts
     http = HttpClient.for_server(server, clients.http_token, clients.http_ca)
+    # Its processes run with the defaults: their kernels, compiled once here (numba caches them).
+    print(
+        "gmmap demo: loading numba's kernels (compiled at the first run on a machine, about a minute) ...",
+        file=sys.stderr,
+        flush=True,
+    )
+    warm_s = warm_fleet_kernels("office", FitConfig(), AgentConfig().encoding)
+    print(f"gmmap demo: kernels ready in {warm_s:.1f} s", file=sys.stderr, flush=True)
     scheme = "https" if server.http_tls else "http"
     where = f"{scheme}://{server.http}/"
     print(f"gmmap demo: the viewer is at {where} ({ROBOTS} robots in the office; Ctrl-C stops)", flush=True)

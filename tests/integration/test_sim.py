@@ -196,23 +196,27 @@ def test_short_sim_over_zenoh_writes_a_complete_report(tmp_path):
 
 def test_demo_serves_the_viewer_and_stops_after_its_duration(tmp_path):
     port = free_port()
-    demo = subprocess.Popen(
-        GMMAP + ["demo", "--duration", "3", "--http", f"127.0.0.1:{port}"],
-        cwd=tmp_path,
-        env=ENV,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
+    with open(tmp_path / "stderr", "w") as stderr:
+        demo = subprocess.Popen(
+            GMMAP + ["demo", "--duration", "3", "--http", f"127.0.0.1:{port}"],
+            cwd=tmp_path,
+            env=ENV,
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+            text=True,
+        )
     try:
         assert demo.stdout.readline().startswith(f"gmmap demo: the viewer is at http://127.0.0.1:{port}/")
-        deadline, nodes = time.monotonic() + 30, 0
+        said = (tmp_path / "stderr").read_text()  # the kernels were compiled (or loaded) before any process started
+        assert "gmmap demo: loading numba's kernels" in said and "gmmap demo: kernels ready in" in said, said
+        deadline, nodes = time.monotonic() + 60, 0
         while nodes == 0 and time.monotonic() < deadline:
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}/v1/robots", timeout=5) as response:
                     nodes = sum(r["nodes"] for r in json.loads(response.read()))
             except OSError:
-                time.sleep(0.3)
+                pass
+            time.sleep(0.3)
         assert nodes > 0
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
             assert b"gmmap viewer" in response.read()
