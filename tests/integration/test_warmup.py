@@ -71,3 +71,39 @@ def test_after_warm_up_real_scans_and_tiles_compile_nothing():
     # The warm-up reached the server's own kernels (the robot's fit and encoding loaded the shared ones).
     assert {"gmm_core.scan_trace._trace_blocks", "gmm_core.occupancy._map_estimate"} <= set(result["warmed"])
     assert result["new"] == {}, f"kernels the warm-up did not load: {result['new']}"
+
+
+FLEET_SCRIPT = """
+import itertools, json, sys
+import numba
+from gmm_core import FitConfig, fit_scan
+from protocol import ScanMessage, encode
+from services.sim.fleet import SimulatedFleet
+from services.sim.warmup import warm_fleet_kernels
+
+def compiled():
+    return {f"{name}.{attr}": len(value.signatures)
+            for name, module in list(sys.modules.items()) if name.split(".")[0] in ("gmm_core", "protocol", "services")
+            for attr, value in vars(module).items() if isinstance(value, numba.core.registry.CPUDispatcher)}
+
+warm_fleet_kernels("office", FitConfig(), "q")
+warmed = compiled()
+fleet = SimulatedFleet("office", 3, 20, 5.0)  # the demo's robots: another robot, later scans, a loop closure
+for scan in itertools.islice(fleet.scans(2, correct_every=5), 12):
+    model = fit_scan(scan.hits, scan.no_return, FitConfig().for_dimension(2))
+    encode(ScanMessage("default", "r2", scan.index, scan.stamp, model, scan.odom_pose), "q")
+after = compiled()
+print(json.dumps({"warmed": sorted(k for k, n in warmed.items() if n),
+                  "new": {k: n - warmed.get(k, 0) for k, n in after.items() if n > warmed.get(k, 0)}}))
+"""
+
+
+def test_after_the_fleet_warm_up_a_demo_robot_compiles_nothing():
+    """`gmmap demo` compiles once, before its processes start (services/sim/warmup.py): a robot of
+    the demo then simulates, fits and encodes its scans with kernels from numba's cache only."""
+    run = subprocess.run([sys.executable, "-c", FLEET_SCRIPT], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert "gmm_core.scan_trace._trace_blocks" in result["warmed"]  # the server's too
+    assert any(k.startswith("services.sim.") for k in result["warmed"])  # the simulated sensor's
+    assert result["new"] == {}, f"kernels the warm-up did not load: {result['new']}"
