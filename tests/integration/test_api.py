@@ -320,10 +320,11 @@ def test_api_docs_render_offline(server, tmp_path):
 def test_viewer_asks_a_shed_tile_again_after_its_retry_after(server, tmp_path, monkeypatch):
     """A tile answered 503 (the tracers saturated, as a cold server's first screen may find them) is
     asked again after its Retry-After, not left blank until the map changes."""
-    fleet_map, shed = server.state.fleet_map, []
+    fleet_map, shed, asked = server.state.fleet_map, [], {}
     answer = fleet_map.occupancy_answer
 
     def saturated_at_first(grid, robots=None, **kwargs):
+        asked.setdefault((tuple(grid.origin), grid.resolution), []).append(time.monotonic())
         if len(shed) < 8:
             shed.append(grid)
             raise TracersSaturated(TracerLoad(threads=2, queued=16, running=2, wait_s=0.5))  # Retry-After: 1
@@ -332,6 +333,8 @@ def test_viewer_asks_a_shed_tile_again_after_its_retry_after(server, tmp_path, m
     monkeypatch.setattr(fleet_map, "occupancy_answer", saturated_at_first)
     free = (screenshot(tmp_path, f"{server.url}/").mean(axis=2)[CENTRE] > FREE_GREY).mean()
     assert len(shed) == 8 and free > 0.05, f"{len(shed)} shed, {free:.1%} free pixels"
+    gaps = [b - a for times in asked.values() for a, b in zip(times, times[1:])]
+    assert gaps and min(gaps) >= 0.95, f"a shed tile was asked again {min(gaps):.2f} s after its 503 (Retry-After: 1)"
 
 
 @pytest.mark.skipif(
