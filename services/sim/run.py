@@ -96,10 +96,10 @@ def tile_urls(grid: Grid) -> list[str]:
     return urls
 
 
-def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) -> None:
+def fetch_tiles(http: HttpClient, urls: list[str], clients: int, asking, stop, results) -> None:
     """`clients` threads fetching random tiles (paths of `urls`) until `stop` is set, as a viewer
     does: each on a connection it keeps; a shed request (503) waits its Retry-After (at most
-    SHED_WAIT_S) before the next. Puts
+    SHED_WAIT_S) before the next. Sets `asking` once they started; puts
     ((asked, latency, X-Map-Age) of the answered requests, failures by kind) on `results`."""
     die_with_parent(multiprocessing.parent_process().pid)
     latencies, errors, lock = [], Counter(), threading.Lock()
@@ -126,6 +126,7 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
     threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
     for thread in threads:
         thread.start()
+    asking.set()
     for thread in threads:
         thread.join()
     results.put((latencies, dict(errors)))
@@ -134,12 +135,21 @@ def fetch_tiles(http: HttpClient, urls: list[str], clients: int, stop, results) 
 class TileClients:
     """HTTP clients in a process of their own, so that their threads do not hold up the relays' and the tap's."""
 
-    def __init__(self, http: HttpClient, urls: list[str], clients: int):
+    def __init__(self, http: HttpClient, urls: list[str], clients: int, timeout: float = 120.0):
+        """Returns once the clients are asking (a spawned interpreter takes seconds to import them:
+        a short run's robots were done before the first request on a loaded machine)."""
         spawn = multiprocessing.get_context("spawn")  # no fork of a process running Zenoh
-        self._stop, self._results = spawn.Event(), spawn.Queue()
-        args = (http, urls, clients, self._stop, self._results)
+        asking, self._stop, self._results = spawn.Event(), spawn.Event(), spawn.Queue()
+        args = (http, urls, clients, asking, self._stop, self._results)
         self._process = spawn.Process(target=fetch_tiles, args=args, daemon=True)
         self._process.start()
+        deadline = time.monotonic() + timeout
+        while not asking.wait(0.5):
+            if not self._process.is_alive() or time.monotonic() > deadline:
+                self._process.kill()
+                raise RuntimeError(
+                    f"the tile clients' process did not start asking (exit code {self._process.exitcode})"
+                )
 
     def stop(self) -> tuple[list[tuple[float, float, float]], dict[str, int]]:
         """((epoch s asked, latency s, X-Map-Age s) of the answered requests, failures by kind)."""
