@@ -8,15 +8,10 @@ import sys
 
 from support.paths import DATA, ROOT
 
-SCRIPT = """
+# Both scripts: what numba compiled so far, and the JSON line the tests read.
+COMPILED = """
 import itertools, json, sys
 import numba
-import numpy as np
-from gmm_core import Grid, Pose, fit_scan
-from protocol import PoseGraphUpdate, ScanMessage, decode, encode
-from services.datasets import read_scans
-from services.map_server.fleet_map import FleetMap
-from services.map_server.nodes import ScanEntry
 
 
 def compiled():
@@ -28,6 +23,23 @@ def compiled():
                 if isinstance(value, numba.core.registry.CPUDispatcher):
                     found[f"{name}.{attr}"] = len(value.signatures)
     return found
+
+
+def report(before, warmed, after):
+    # The kernels the warm-up compiled, and those compiled after it (with how many signatures).
+    print(json.dumps({"warmed": sorted(k for k in warmed if warmed[k] > before.get(k, 0)),
+                      "new": {k: after[k] - warmed.get(k, 0) for k in after if after[k] > warmed.get(k, 0)}}))
+"""
+
+SCRIPT = (
+    COMPILED
+    + """
+import numpy as np
+from gmm_core import Grid, Pose, fit_scan
+from protocol import PoseGraphUpdate, ScanMessage, decode, encode
+from services.datasets import read_scans
+from services.map_server.fleet_map import FleetMap
+from services.map_server.nodes import ScanEntry
 
 
 # A robot's side first: real scans fitted and encoded (its kernels are not the server's).
@@ -56,10 +68,9 @@ for dim, raws in robots.items():  # the server's side: ingest, a tile, a correct
     fleet_map.apply_poses(PoseGraphUpdate("f", f"r{dim}", 1, moved))
     fleet_map.occupancy(grid)
     fleet_map.close()
-after = compiled()
-print(json.dumps({"warmed": sorted(k for k in warmed if warmed[k] > before.get(k, 0)),
-                  "new": {k: after[k] - warmed.get(k, 0) for k in after if after[k] > warmed.get(k, 0)}}))
+report(before, warmed, compiled())
 """
+)
 
 
 def test_after_warm_up_real_scans_and_tiles_compile_nothing():
@@ -73,29 +84,24 @@ def test_after_warm_up_real_scans_and_tiles_compile_nothing():
     assert result["new"] == {}, f"kernels the warm-up did not load: {result['new']}"
 
 
-FLEET_SCRIPT = """
-import itertools, json, sys
-import numba
+FLEET_SCRIPT = (
+    COMPILED
+    + """
 from gmm_core import FitConfig, fit_scan
 from protocol import ScanMessage, encode
 from services.sim.fleet import SimulatedFleet
 from services.sim.warmup import warm_fleet_kernels
 
-def compiled():
-    return {f"{name}.{attr}": len(value.signatures)
-            for name, module in list(sys.modules.items()) if name.split(".")[0] in ("gmm_core", "protocol", "services")
-            for attr, value in vars(module).items() if isinstance(value, numba.core.registry.CPUDispatcher)}
-
+before = compiled()
 warm_fleet_kernels("office", FitConfig(), "q")
 warmed = compiled()
 fleet = SimulatedFleet("office", 3, 20, 5.0)  # the demo's robots: another robot, later scans, a loop closure
 for scan in itertools.islice(fleet.scans(2, correct_every=5), 12):
     model = fit_scan(scan.hits, scan.no_return, FitConfig().for_dimension(2))
     encode(ScanMessage("default", "r2", scan.index, scan.stamp, model, scan.odom_pose), "q")
-after = compiled()
-print(json.dumps({"warmed": sorted(k for k, n in warmed.items() if n),
-                  "new": {k: n - warmed.get(k, 0) for k, n in after.items() if n > warmed.get(k, 0)}}))
+report(before, warmed, compiled())
 """
+)
 
 
 def test_after_the_fleet_warm_up_a_demo_robot_compiles_nothing():
