@@ -12,7 +12,6 @@ import shutil
 import ssl
 import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 
@@ -27,7 +26,7 @@ from services.map_server.state import ServerState
 from services.map_server.tokens import TokenFile
 from support.browser import CENTRE, FREE_GREY, headless_chromium, screenshot
 from support.http_auth import make_certs, write_tokens
-from support.net import free_port, metric
+from support.net import free_port, metric, wait_for
 from support.paths import ROOT
 from support.uvicorn_thread import Server
 
@@ -339,15 +338,14 @@ def test_demo_with_tls_and_tokens_and_its_refusal_beyond_loopback(secrets, tmp_p
             with urllib.request.urlopen(request, timeout=5, context=context) as reply:
                 return json.loads(reply.read())
 
-        # On a cold numba cache the robots' first fits compile while other tests do: give it time.
-        deadline, nodes = time.monotonic() + 120, 0
-        while nodes == 0 and time.monotonic() < deadline:
+        def nodes() -> int:  # 0 until the server answers
             try:
-                nodes = sum(r["nodes"] for r in robots("ops"))
+                return sum(r["nodes"] for r in robots("ops"))
             except OSError:
-                pass
-            time.sleep(0.3)
-        assert nodes > 0
+                return 0
+
+        # On a cold numba cache the robots' first fits compile while other tests do: give it time.
+        wait_for(nodes, 120, "the demo's first nodes", interval=0.3)
         assert robots("dock") == []  # the demo's robots are r0, r1, r2: none is dock's robot a
         assert demo.wait(60) == 0
     finally:

@@ -23,6 +23,7 @@ from services.sim.fleet import SimSource, SimulatedFleet
 from services.sim.processes import free_port
 from services.sim.record import blocks
 from services.sim.relay import CountingRelay
+from support.net import wait_for
 from support.paths import ROOT
 
 GMMAP = [sys.executable, "-m", "services.cli"]
@@ -209,15 +210,15 @@ def test_demo_serves_the_viewer_and_stops_after_its_duration(tmp_path):
         assert demo.stdout.readline().startswith(f"gmmap demo: the viewer is at http://127.0.0.1:{port}/")
         said = (tmp_path / "stderr").read_text()  # the kernels were compiled (or loaded) before any process started
         assert "gmmap demo: loading numba's kernels" in said and "gmmap demo: kernels ready in" in said, said
-        deadline, nodes = time.monotonic() + 60, 0
-        while nodes == 0 and time.monotonic() < deadline:
+
+        def nodes() -> int:  # 0 until the server answers
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}/v1/robots", timeout=5) as response:
-                    nodes = sum(r["nodes"] for r in json.loads(response.read()))
+                    return sum(r["nodes"] for r in json.loads(response.read()))
             except OSError:
-                pass
-            time.sleep(0.3)
-        assert nodes > 0
+                return 0
+
+        wait_for(nodes, 60, "the demo's first nodes", interval=0.3)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
             assert b"gmmap viewer" in response.read()
         assert demo.wait(60) == 0
