@@ -15,6 +15,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
 from services.map_server.tiles import MAX_STALE_S
+from services.map_server.warmup import warm_kernels
 from support.net import get
 from support.saturation import saturated_tracers
 from support.uvicorn_thread import Server
@@ -27,6 +28,13 @@ def messages(intel_scans):
     return [
         ScanMessage("test", "r1", s.index, s.stamp, fit_scan(s.hits, s.no_return), s.pose) for s in intel_scans[:21]
     ]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def kernels_loaded():
+    """As a server loads them before it serves: an update compiling its kernels on a cold numba
+    cache, beside another test's, outlasted a request's patience (PATIENCE_S) in a fresh-clone run."""
+    warm_kernels()
 
 
 @pytest.fixture
