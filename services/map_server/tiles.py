@@ -34,7 +34,7 @@ from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from itertools import compress, islice
+from itertools import chain, compress, islice
 
 import numpy as np
 
@@ -103,6 +103,10 @@ class Tile:
     seen: int  # change-log position up to which `held` accounts for every change
     held: dict[NodeKey, Posed] = field(default_factory=dict)  # the nodes counted in, at the pose and samples counted
     thinned: int = 0  # nodes of `held` counted with the busy tracers' fewer samples per cell
+    # Nodes of `held` counted at a pose that busy tracers' coarser tolerance (BUSY_REPOSE_CELLS) kept
+    # though they had moved beyond REPOSE_CELLS: refined like thinned nodes, or a correction of many
+    # nodes by less than a cell made while the tracers were busy would never reach the tile.
+    loose: set[NodeKey] = field(default_factory=set)
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None  # None until the first trace succeeded
     prob_at: int = -1  # `changes` when `prob` was computed
@@ -115,6 +119,11 @@ class Tile:
     # A layer's windows of one state, the same array each time it is asked for (so its encoded reply
     # is reused: services/api/encoded.py): (the state's prob, {window's (start, stop)s: view}).
     views: tuple[np.ndarray | None, dict] = field(default_factory=lambda: (None, {}))
+
+    @property
+    def unrefined(self) -> bool:
+        """Whether idle tracers have nodes to trace again: thinned ones, or loose ones (at their pose now)."""
+        return bool(self.thinned or self.loose)
 
     @property
     def nbytes(self) -> int:
@@ -348,7 +357,7 @@ class TileCache:
         `bounded`), the changes and log position it will account for, whether that leaves later
         changes out, whether it is the first trace, the samples per cell of what it traces: None for
         the map's, which `full` asks for (for at most FULL_UPDATE_NODES nodes when `bounded`), and
-        then the thinned nodes, at most `refine` (None: all), it traces again with every sample,
+        then the thinned and loose nodes, at most `refine` (None: all), it traces again with every sample,
         where they stand now; and whether its parts give way to other traces'). Bounded: the updates
         of HTTP requests (which may be served a previous state meanwhile) and in the background; an
         in-process caller (patience None) and a request for every change get every change, at every
@@ -363,27 +372,28 @@ class TileCache:
         else:
             limit = MAX_UPDATE_NODES if bounded else None
             nodes, seen = self._nodes.changed_since(tile.seen, tile.grid, tile.robots, limit)
+        repose_cells = REPOSE_CELLS if full else BUSY_REPOSE_CELLS  # the tolerance of busy tracers
         if bounded and len(nodes) > FULL_UPDATE_NODES:
             full = False  # a large update is thinned even on idle tracers, and refined behind it
         samples_per_cell = None if full else self.busy_samples_per_cell
         refined = {}
-        if full and tile.thinned and not afresh:
+        if full and tile.unrefined and not afresh:
             thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
-            refined = {k: self._nodes.posed(k) for k in islice(thinned, refine)}
+            refined = {k: self._nodes.posed(k) for k in islice(chain(thinned, tile.loose), refine)}
         tile.dirty_since = None  # from here on, changes are left for the next update
         partial = seen < self._nodes.log.end  # MAX_UPDATE_NODES left changes for the next update
-        return afresh, nodes, changes, seen, partial, first, samples_per_cell, refined, not bounded
+        return afresh, nodes, changes, seen, partial, first, samples_per_cell, repose_cells, refined, not bounded
 
     def _update(self, tile: Tile, work: tuple) -> TileAnswer:
         """Trace what `_begin_update` found and publish the tile's new state; releases `tile.lock`."""
-        afresh, nodes, changes, seen, partial, first, samples_per_cell, refined, background = work
+        afresh, nodes, changes, seen, partial, first, samples_per_cell, repose_cells, refined, background = work
         start = time.monotonic()
         with _held(tile.lock):
             try:
                 if afresh:
                     self._trace_afresh(tile, nodes, samples_per_cell, background)
                 else:
-                    self._trace_changes(tile, nodes, samples_per_cell, refined, background)
+                    self._trace_changes(tile, nodes, samples_per_cell, repose_cells, refined, background)
             except BaseException:
                 with self._lock:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
@@ -420,7 +430,9 @@ class TileCache:
         with self._lock:
             tile.refreshing = False
             full = self._tracers.load().idle
-            if (tile.prob_at == tile.changes and not (tile.thinned and full)) or not tile.lock.acquire(blocking=False):
+            if (tile.prob_at == tile.changes and not (tile.unrefined and full)) or not tile.lock.acquire(
+                blocking=False
+            ):
                 return  # up to date (and refined, or the tracers are busy), or a request is updating it
             work = self._begin_update(tile, full, REFINE_NODES, bounded=True)
         try:
@@ -447,12 +459,12 @@ class TileCache:
         if tile.prob is None:
             return None
         if tile.prob_at == tile.changes:
-            if tile.thinned and max_age <= 0:
+            if tile.unrefined and max_age <= 0:
                 return None  # every change, with every sample: refined by this request
             if waited:
                 return self._answer(tile, tile.prob, 0.0, "updated")
             self._hits += 1
-            if tile.thinned and not (tile.refreshing or tile.lock.locked()) and self._tracers.load().idle:
+            if tile.unrefined and not (tile.refreshing or tile.lock.locked()) and self._tracers.load().idle:
                 tile.refreshing = True  # refined in the background while the tracers are idle
                 self._refresher.submit(self._refresh, tile)
             return self._answer(tile, tile.prob, 0.0, "fresh")
@@ -502,31 +514,33 @@ class TileCache:
             tile.hits, tile.misses = np.zeros(tile.grid.array_shape), np.zeros(tile.grid.array_shape)
         tile.held = {posed.key: posed for posed in counted}
         tile.thinned = len(counted) if samples_per_cell is not None else 0
+        tile.loose = set()
 
     def _trace_changes(
         self,
         tile: Tile,
         changed: dict[NodeKey, Posed | None],
         samples_per_cell: float | None,
+        repose_cells: float,
         refined: dict[NodeKey, Posed],
         background: bool,
     ) -> None:
         """Bring the counts up to the nodes in `changed` (None: it no longer reaches the tile), tracing
-        them with `samples_per_cell` (None: the map's), and trace the thinned nodes in `refined` again
-        with every sample, where they stand now; in parts that give way to other traces' when
-        `background`.
+        them with `samples_per_cell` (None: the map's) where new or moved by over `repose_cells` cells,
+        and trace the thinned and loose nodes in `refined` again with every sample, where they stand
+        now; in parts that give way to other traces' when `background`.
 
         Only after the trace succeeded is the tile changed: a failed one leaves it as it was.
         """
-        held, spc = tile.held, samples_per_cell
+        held, spc, loose = tile.held, samples_per_cell, {}
         moved = {k: held[k] for k, now in changed.items() if now is None and k in held}  # it left the tile
         new = [now.counted_with(spc) for k, now in changed.items() if now is not None and k not in held]
         reposed = [
             (held[k], now) for k, now in changed.items() if now is not None and k in held and now.stamp != held[k].stamp
         ]
-        if reposed:  # traced again only when some ray end moved over (BUSY_)REPOSE_CELLS of a cell
+        if reposed:  # traced again only when some ray end moved over `repose_cells` cells
             was, now = zip(*reposed)
-            far = (
+            moved_by = (
                 displacements(
                     np.array([p.pose.t for p in was]),
                     np.array([p.pose.R for p in was]),
@@ -534,17 +548,21 @@ class TileCache:
                     np.array([p.pose.R for p in now]),
                     np.array([p.node.reach for p in now]),
                 )
-                > (REPOSE_CELLS if spc is None else BUSY_REPOSE_CELLS) * tile.grid.resolution
+                / tile.grid.resolution
             )
+            far = moved_by > repose_cells
             for before, after in compress(reposed, far):
                 moved[before.key] = before
                 new.append(after.counted_with(spc))
-            # the others stay counted at the pose held, within the tolerance of where they stand now
+            # The others stay counted at the pose held, within the tolerance of where they stand now:
+            # loose (refined later) where only busy tracers' coarser tolerance keeps them there.
+            loose = {b.key: cells > REPOSE_CELLS for (b, _), cells, f in zip(reposed, moved_by, far) if not f}
         for k, now in refined.items():  # taken out as counted, counted again with every sample
             if k not in moved and k in held:
                 moved[k] = held[k]
                 new.append(now)
         if not (new or moved):
+            _mark_loose(tile, loose, moved)
             return
         # Updating traces new + moved nodes, afresh traces new + unmoved ones: update unless most of
         # the tile moved (a big correction).
@@ -561,6 +579,7 @@ class TileCache:
         for k in moved:
             del held[k]
         held.update((posed.key, posed) for posed in new)
+        _mark_loose(tile, loose, moved)
 
     def _evict(self) -> None:
         """Drop least recently used tiles over TILE_CACHE_BYTES (always keeping the newest)."""
@@ -605,6 +624,12 @@ def _view(tile: Tile, prob: np.ndarray, window: tuple[slice, ...]) -> np.ndarray
     if view is None:
         view = views[key] = prob[window]
     return view
+
+
+def _mark_loose(tile: Tile, loose: dict[NodeKey, bool], traced: Iterable[NodeKey]) -> None:
+    """Bring tile.loose up to an update: `loose` says of each node it kept at the pose held whether
+    that node is loose now; the nodes it `traced` (moved, refined or gone) are not."""
+    tile.loose = {k for k in tile.loose | loose.keys() if loose.get(k, True)}.difference(traced)
 
 
 def _thinned(counted: Iterable[Posed]) -> int:

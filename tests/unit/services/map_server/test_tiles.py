@@ -285,6 +285,40 @@ def test_a_large_update_is_thinned_on_idle_tracers_unless_every_change_is_asked(
     assert exact.samples_per_cell == 4.0 and np.array_equal(exact.prob, offline(messages[:32], None, {}))
 
 
+def test_a_correction_by_less_than_a_cell_reaches_the_tile_on_idle_tracers(messages, monkeypatch):
+    """Busy tracers keep a node moved by less than BUSY_REPOSE_CELLS at the pose held; where it moved
+    by more than REPOSE_CELLS it is loose, and idle tracers trace it again at its pose, as they refine
+    thinned nodes. Idle tracers trace such a move at once, in a large update too (thinned, refined
+    behind it). Half a cell here: a pose-graph correction of many nodes reaches the tile either way."""
+    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 2)  # the 3 moved nodes: a large update
+    half_cell = np.array([0.5 * GRID.resolution, 0.0, 0.0])
+    update = PoseGraphUpdate(
+        "f", "r1", 1, tuple((m.node, Pose.from_xytheta(*(m.pose.as_xytheta() + half_cell))) for m in messages[:3])
+    )
+    moved = offline(messages[:20], update, {})
+
+    busy_first = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    before = busy_first.occupancy(GRID)
+    assert not np.array_equal(moved, before)
+    idle = TracerPool.load
+    monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
+    busy_first.apply_poses(update)
+    wait_for(lambda: busy_first.occupancy_answer(GRID).kind == "fresh", 30, "the background update")
+    assert np.array_equal(busy_first.occupancy(GRID), before)  # within the busy tolerance: kept
+    (tile,) = busy_first._tiles.values()
+    assert len(tile.loose) == 3
+    monkeypatch.setattr(TracerPool, "load", idle)
+    wait_for(lambda: np.array_equal(busy_first.occupancy_answer(GRID).prob, moved), 30, "the refinement")
+    assert not tile.loose
+
+    idle_first = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    idle_first.occupancy(GRID)
+    idle_first.apply_poses(update)
+    assert idle_first.occupancy_answer(GRID, patience=0.0).samples_per_cell == 1.0  # traced at once, thinned
+    wait_for(lambda: idle_first.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
+    assert np.array_equal(idle_first.occupancy(GRID), moved)
+
+
 def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(messages, monkeypatch):
     """An HTTP request's update (patience given) applies a backlog of changes MAX_UPDATE_NODES at a
     time, oldest first: each answer says how long ago the first change it lacks was made, and the
