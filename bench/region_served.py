@@ -1,0 +1,207 @@
+"""The cold 3D region and a correction as `gmmap server` serves them over HTTP, on one core (issue 15).
+
+    PYTHONPATH=. .venv/bin/python bench/region_served.py [--runs 2] [--shift 0.05]
+
+bench/query3d.py times the reconstruction in process, every sample at once. This runs the product:
+a `gmmap server` (one tracer thread, pinned to one core with `taskset -c 0`) is sent the map of
+bench/mine_map.py over Zenoh as the robots send it (every scan acknowledged, then each robot's
+pose-graph update), and a client asks `GET /v1/occupancy` for the region of query3d.py (200 x 200
+x 40 cells at 0.1 m around the last robot, npy) on the server's empty tile cache:
+
+- first answer: the time to it, the samples per cell it holds (X-Map-Samples-Per-Cell: a large
+  update is traced with the busy samples per cell first, tiles.py) and its AUROC against the mine
+  world's truth over the cells the refined answer has evidence in;
+- refined: asked every 0.2 s, the time until an answer holds the map's 4 samples per cell;
+- correction: every node of the last robot moved by `--shift` m along x (a PoseGraphUpdate at a
+  new revision, published as its agent would); the time from publishing it to the first answer
+  that accounts for it (the server holds the revision and X-Map-Age is 0), and until that is refined.
+
+Each run is a fresh server. The kernels are loaded at the server's start, before it says "ready".
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import mine_map  # noqa: E402
+from query3d import REGION_CELLS, RESOLUTION, machine_line  # noqa: E402
+
+from gmm_core import Grid  # noqa: E402
+from gmm_core.metrics import auroc  # noqa: E402
+from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
+from protocol.keys import ack_key, poses_key, scan_key  # noqa: E402
+from services.sim.processes import free_port  # noqa: E402
+from services.sim.worlds import make_world  # noqa: E402
+from services.zenoh_config import zenoh_config  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+POLL_S = 0.2
+BLOCK = zenoh.CongestionControl.BLOCK  # as an agent puts: never dropped under load
+
+
+class Served:
+    """One `gmmap server` on one core, filled with the mine map, and a Zenoh session to it."""
+
+    def __init__(self, data: str):
+        zport, self.hport = free_port(), free_port()
+        pin = ["taskset", "-c", "0"] if shutil.which("taskset") else []
+        self.process = subprocess.Popen(
+            pin + [sys.executable, "-m", "services.cli", "server", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
+                   "--http", f"127.0.0.1:{self.hport}", "--data-dir", data, "--trace-threads", "1"],
+            cwd=ROOT, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        for line in self.process.stderr:
+            if "ready" in line:
+                break
+        else:
+            raise SystemExit("the server did not start")
+        threading.Thread(target=self.process.stderr.read, daemon=True).start()  # its log, not to block it
+        self.session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
+
+    def fill(self, messages: list[bytes], updates: list[bytes]) -> None:
+        """Every scan, acknowledged, then every pose-graph update, held."""
+        scans = [decode(raw, expect=ScanMessage) for raw in messages]
+        robots = sorted({s.robot for s in scans})
+        acked, done, lock = set(), threading.Event(), threading.Lock()
+
+        def on_ack(sample):
+            ack = decode(sample.payload.to_bytes(), expect=Ack)
+            with lock:
+                acked.update((ack.robot, i) for i in ack.ids)
+                if len(acked) == len(scans):
+                    done.set()
+
+        subscribers = [self.session.declare_subscriber(ack_key(mine_map.FLEET, r), on_ack) for r in robots]
+        probe = self.session.declare_publisher(scan_key(mine_map.FLEET, robots[0], 0))
+        while not probe.matching_status.matching:
+            time.sleep(0.01)
+        time.sleep(0.2)  # the Ack subscribers reach the server
+        for scan, raw in zip(scans, messages):
+            self.session.put(scan_key(scan.fleet, scan.robot, scan.node), raw, congestion_control=BLOCK)
+        if not done.wait(120):
+            raise SystemExit(f"only {len(acked)} of {len(scans)} scans acknowledged")
+        for s in subscribers:
+            s.undeclare()
+        for raw in updates:
+            self.publish(decode(raw, expect=PoseGraphUpdate))
+
+    def publish(self, update: PoseGraphUpdate) -> None:
+        self.session.put(poses_key(update.fleet, update.robot), encode(update), congestion_control=BLOCK)
+
+    def revision(self, robot: str) -> int:
+        robots = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{self.hport}/v1/robots", timeout=30).read())
+        return next(r["pose_revision"] for r in robots if r["robot"] == robot)
+
+    def region(self, grid: Grid) -> tuple[np.ndarray, float, float]:
+        """(p(occupied), samples per cell, age) of GET /v1/occupancy for `grid`, as npy."""
+        lo, hi = grid.origin, grid.upper
+        bbox = ",".join(f"{v:.4f}" for v in (*lo, *hi))
+        url = f"http://127.0.0.1:{self.hport}/v1/occupancy?bbox={bbox}&resolution={grid.resolution}&format=npy"
+        with urllib.request.urlopen(url, timeout=120) as reply:
+            prob = np.load(io.BytesIO(reply.read()))
+            return prob, float(reply.headers["X-Map-Samples-Per-Cell"]), float(reply.headers["X-Map-Age"])
+
+    def close(self) -> None:
+        self.session.close()
+        self.process.terminate()
+        self.process.wait(30)
+
+
+def until(ask, done, limit_s: float = 120.0):
+    """Ask every POLL_S until `done(answer)`; (seconds since the call, answer)."""
+    start = time.perf_counter()
+    while True:
+        answer = ask()
+        if done(answer):
+            return time.perf_counter() - start, answer
+        if time.perf_counter() - start > limit_s:
+            raise SystemExit(f"no such answer in {limit_s:g} s")
+        time.sleep(POLL_S)
+
+
+def run(messages: list[bytes], updates: list[bytes], region: Grid, truth: np.ndarray, shift: float) -> dict:
+    with tempfile.TemporaryDirectory() as data:
+        server = Served(data)
+        try:
+            server.fill(messages, updates)
+            graphs = [decode(raw, expect=PoseGraphUpdate) for raw in updates]
+            while any(server.revision(g.robot) != g.revision for g in graphs):
+                time.sleep(0.05)
+            last = graphs[-1]
+            ask = lambda: server.region(region)  # noqa: E731
+            start = time.perf_counter()
+            first_s, (first, first_spc, _) = until(ask, lambda a: True)
+            _, (refined, _, _) = until(ask, lambda a: a[1] == 4.0 and a[2] == 0.0)
+            refined_s = time.perf_counter() - start
+            seen = refined != 0.5
+            moved = mine_map.shifted(last, revision=last.revision + 1, shift=shift)
+            start = time.perf_counter()
+            server.publish(moved)
+
+            def accounts(answer) -> bool:  # asked after the server held the revision, and up to date
+                return answer[2] == 0.0 and answer[3] == moved.revision
+
+            def ask_after():
+                held = server.revision(last.robot)
+                return (*server.region(region), held)
+
+            _, (fixed, fixed_spc, _, _) = until(ask_after, accounts)
+            visible_s = time.perf_counter() - start
+            _, (fixed_refined, _, _, _) = until(ask_after, lambda a: accounts(a) and a[1] == 4.0)
+            return {
+                "first_s": first_s,
+                "first_spc": first_spc,
+                "first_auroc": auroc(first[seen], truth[seen]),
+                "refined_s": refined_s,
+                "refined_auroc": auroc(refined[seen], truth[seen]),
+                "correction_s": visible_s,
+                "correction_spc": fixed_spc,
+                "correction_changed": not np.array_equal(fixed_refined, refined),
+                "correction_refined_s": time.perf_counter() - start,
+            }
+        finally:
+            server.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=2)
+    parser.add_argument("--shift", type=float, default=0.05, help="m every node of the last robot moves")
+    args = parser.parse_args()
+    messages, updates, position = mine_map.load()
+    region = Grid(position - np.array(REGION_CELLS) * RESOLUTION / 2, RESOLUTION, REGION_CELLS)
+    truth = make_world(mine_map.WORLD).ground_truth(region)
+    print(machine_line())
+    print(f"mine sim map: {len(messages)} nodes; region {'x'.join(map(str, REGION_CELLS))} at {RESOLUTION} m")
+    print(
+        "| run | first answer | its samples per cell, AUROC | refined (4), AUROC "
+        "| correction visible | its samples per cell | refined |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for i in range(args.runs):
+        r = run(messages, updates, region, truth, args.shift)
+        print(
+            f"| {i} | {r['first_s']:.2f} s | {r['first_spc']:g}, {r['first_auroc']:.5f} | {r['refined_s']:.2f} s, "
+            f"{r['refined_auroc']:.5f} | {r['correction_s']:.2f} s | {r['correction_spc']:g} | "
+            f"{r['correction_refined_s']:.2f} s{'' if r['correction_changed'] else ' (unchanged!)'} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
