@@ -430,9 +430,8 @@ class TileCache:
         with self._lock:
             tile.refreshing = False
             full = self._tracers.load().idle
-            if (tile.prob_at == tile.changes and not (tile.unrefined and full)) or not tile.lock.acquire(
-                blocking=False
-            ):
+            refines = tile.unrefined and full
+            if (tile.prob_at == tile.changes and not refines) or not tile.lock.acquire(blocking=False):
                 return  # up to date (and refined, or the tracers are busy), or a request is updating it
             work = self._begin_update(tile, full, REFINE_NODES, bounded=True)
         try:
