@@ -47,13 +47,15 @@ class FleetMap:
         busy_samples_per_cell: float | None = None,
         stored_bytes: Callable[[NodeKey], bytes] | None = None,
         trace_store: Path | None = None,
+        report_slow_updates: bool = True,
     ):
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
         their models nor their bytes (a server keeps a shift's scans: nodes.py).
         busy_samples_per_cell: what tile updates begun while any tracer has work trace new and moved
         nodes with (tiles.py); None: always `samples_per_cell`.
         trace_store: the file of the store `stored_bytes` reads, to trace in a process per tracer
-        thread reading the nodes from it (tracers.py); None: in the tracer threads."""
+        thread reading the nodes from it (tracers.py); None: in the tracer threads.
+        report_slow_updates: log tile updates over tiles.SLOW_UPDATE_S (a throwaway map logs none)."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell
@@ -65,7 +67,9 @@ class FleetMap:
         )
         self._prime = trace_store is None  # tracer processes keep samplers of their own
         self._nodes = NodeStore(lambda lo, hi: self._tiles.mark_stale(lo, hi), hold_models=stored_bytes is None)
-        self._tiles = TileCache(self._lock, self._nodes, self._tracers, prior, samples_per_cell, busy_samples_per_cell)
+        self._tiles = TileCache(
+            self._lock, self._nodes, self._tracers, prior, samples_per_cell, busy_samples_per_cell, report_slow_updates
+        )
 
     @property
     def dim(self) -> int | None:

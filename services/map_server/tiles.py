@@ -157,9 +157,11 @@ class TileCache:
         prior: float,
         samples_per_cell: float,
         busy_samples_per_cell: float | None = None,
+        report_slow: bool = True,
     ):
         """busy_samples_per_cell: what updates begun while any tracer has work count new and moved
-        nodes with; None (or not below `samples_per_cell`, the map's): always the map's."""
+        nodes with; None (or not below `samples_per_cell`, the map's): always the map's.
+        report_slow: log each update over SLOW_UPDATE_S (a throwaway map's, as the warm-up's, are not)."""
         self._lock = lock
         self._nodes = nodes
         self._tracers = tracers
@@ -167,6 +169,7 @@ class TileCache:
         self._refresher = ThreadPoolExecutor(tracers.threads, "gmmap-refresh")
         self.prior = prior
         self.samples_per_cell = samples_per_cell
+        self.report_slow = report_slow
         thins = busy_samples_per_cell is not None and busy_samples_per_cell < samples_per_cell
         self.busy_samples_per_cell = busy_samples_per_cell if thins else None
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
@@ -402,7 +405,7 @@ class TileCache:
             prob = map_estimate(tile.hits, tile.misses, self.prior)
             prob.setflags(write=False)
             seconds = time.monotonic() - start
-            if seconds > SLOW_UPDATE_S:
+            if self.report_slow and seconds > SLOW_UPDATE_S:
                 log.warning(
                     "a tile update took %.1f s: %s, %d nodes (%d refined) at %s samples per cell on %s cells of %g m",
                     seconds, "afresh" if afresh else "changes", len(nodes), len(refined),

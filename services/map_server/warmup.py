@@ -39,7 +39,8 @@ def warm_kernels() -> float:
     """Run a scan's path through a throwaway FleetMap in 2D and 3D; returns the seconds it took."""
     start = time.perf_counter()
     for dim in (2, 3):
-        fleet_map = FleetMap(_FLEET, trace_threads=1)
+        # Its updates wait for numba's compiler on an empty cache: not a slow map worth a warning.
+        fleet_map = FleetMap(_FLEET, trace_threads=1, report_slow_updates=False)
         try:
             scans = [_scan(dim, node, encoding) for node, encoding in enumerate(("q", "f32"))]
             # As ingest adds them: the entries, with the models it decoded.
