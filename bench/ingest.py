@@ -26,6 +26,9 @@ import zenoh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from acked import AckedScans  # noqa: E402
 
 from gmm_core import Grid, Pose, fit_scan  # noqa: E402
 from protocol import Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key, scan_key  # noqa: E402
@@ -90,32 +93,16 @@ def main() -> int:
             else:
                 raise SystemExit("server did not start")
             session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
-            acked, done, last_ack = set(), threading.Event(), [0.0]
-            lock = threading.Lock()
-
-            def on_ack(sample):
-                ack = decode(sample.payload.to_bytes(), expect=Ack)
-                with lock:
-                    acked.update((ack.robot, i) for i in ack.ids)
-                    last_ack[0] = time.perf_counter()
-                    if len(acked) == len(messages):
-                        done.set()
-
-            subs = [session.declare_subscriber(ack_key("default", r), on_ack) for r in robots]
-            probe = session.declare_publisher(scan_key("default", robots[0], 0))
-            while not probe.matching_status.matching:
-                time.sleep(0.01)
-            time.sleep(0.2)  # our Ack subscribers reach the server
+            acks = AckedScans(session, "default", robots)
             if args.http_clients:
                 clients = TileClients(HttpClient(f"http://127.0.0.1:{http_port}"), urls, args.http_clients)
                 time.sleep(2.0)  # every client has a request in flight
             start = time.perf_counter()
-            for key, raw in messages:
-                session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
+            acks.put(messages)
             published = time.perf_counter()
-            if not done.wait(120):
-                raise SystemExit(f"only {len(acked)} of {len(messages)} acknowledged")
-            seconds = last_ack[0] - start
+            if not acks.wait(120):
+                raise SystemExit(f"only {len(acks.acked)} of {len(messages)} acknowledged")
+            seconds = acks.last_ack - start
             if clients is not None:
                 tiles, errors = clients.stop()
                 clients = None
@@ -142,9 +129,7 @@ def main() -> int:
                     raise SystemExit("pose update not acknowledged")
                 latencies.append(time.perf_counter() - t)
                 sub.undeclare()
-            for sub in subs:
-                sub.undeclare()
-            probe.undeclare()
+            acks.close()
         finally:
             if clients is not None:
                 clients.stop()

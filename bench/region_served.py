@@ -39,19 +39,18 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import mine_map  # noqa: E402
+from acked import BLOCK, AckedScans  # noqa: E402
 from query3d import REGION_CELLS, RESOLUTION, machine_line  # noqa: E402
 
 from gmm_core import Grid  # noqa: E402
 from gmm_core.metrics import auroc  # noqa: E402
-from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
-from protocol.keys import ack_key, poses_key, scan_key  # noqa: E402
+from protocol import PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key  # noqa: E402
 from services.sim.processes import free_port  # noqa: E402
 from services.sim.worlds import make_world  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 POLL_S = 0.2
-BLOCK = zenoh.CongestionControl.BLOCK  # as an agent puts: never dropped under load
 
 
 class Served:
@@ -76,29 +75,16 @@ class Served:
     def fill(self, messages: list[bytes], updates: list[bytes]) -> None:
         """Every scan, acknowledged, then every pose-graph update, held."""
         scans = [decode(raw, expect=ScanMessage) for raw in messages]
-        robots = sorted({s.robot for s in scans})
-        acked, done, lock = set(), threading.Event(), threading.Lock()
-
-        def on_ack(sample):
-            ack = decode(sample.payload.to_bytes(), expect=Ack)
-            with lock:
-                acked.update((ack.robot, i) for i in ack.ids)
-                if len(acked) == len(scans):
-                    done.set()
-
-        subscribers = [self.session.declare_subscriber(ack_key(mine_map.FLEET, r), on_ack) for r in robots]
-        probe = self.session.declare_publisher(scan_key(mine_map.FLEET, robots[0], 0))
-        while not probe.matching_status.matching:
-            time.sleep(0.01)
-        time.sleep(0.2)  # the Ack subscribers reach the server
-        for scan, raw in zip(scans, messages):
-            self.session.put(scan_key(scan.fleet, scan.robot, scan.node), raw, congestion_control=BLOCK)
-        if not done.wait(120):
-            raise SystemExit(f"only {len(acked)} of {len(scans)} scans acknowledged")
-        for s in subscribers:
-            s.undeclare()
-        for raw in updates:
-            self.publish(decode(raw, expect=PoseGraphUpdate))
+        acks = AckedScans(self.session, mine_map.FLEET, sorted({s.robot for s in scans}))
+        acks.put([(scan_key(s.fleet, s.robot, s.node), raw) for s, raw in zip(scans, messages)])
+        if not acks.wait(120):
+            raise SystemExit(f"only {len(acks.acked)} of {len(scans)} scans acknowledged")
+        acks.close()
+        graphs = [decode(raw, expect=PoseGraphUpdate) for raw in updates]
+        for update in graphs:
+            self.publish(update)
+        while any(self.revision(g.robot) != g.revision for g in graphs):
+            time.sleep(0.05)
 
     def publish(self, update: PoseGraphUpdate) -> None:
         self.session.put(poses_key(update.fleet, update.robot), encode(update), congestion_control=BLOCK)
@@ -139,10 +125,7 @@ def run(messages: list[bytes], updates: list[bytes], region: Grid, truth: np.nda
         server = Served(data)
         try:
             server.fill(messages, updates)
-            graphs = [decode(raw, expect=PoseGraphUpdate) for raw in updates]
-            while any(server.revision(g.robot) != g.revision for g in graphs):
-                time.sleep(0.05)
-            last = graphs[-1]
+            last = decode(updates[-1], expect=PoseGraphUpdate)
             ask = lambda: server.region(region)  # noqa: E731
             start = time.perf_counter()
             first_s, (first, first_spc, _) = until(ask, lambda a: True)
