@@ -14,7 +14,6 @@ server's capacity under tile load, which issue 16 wants at least twice the 200 s
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
 import threading
@@ -28,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from acked import AckedScans  # noqa: E402
+from live_server import AckedScans, start_server  # noqa: E402
 
 from gmm_core import Grid, Pose, fit_scan  # noqa: E402
 from protocol import Ack, PoseGraphUpdate, ScanMessage, ack_key, decode, encode, poses_key, scan_key  # noqa: E402
@@ -65,12 +64,8 @@ def main() -> int:
     urls = tile_urls(Grid.from_bbox(lo, hi, 0.1))
     clients = None
     with tempfile.TemporaryDirectory() as data:
-        server = subprocess.Popen(
+        server = start_server(
             [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "server",
                 "--zenoh-listen",
                 f"tcp/127.0.0.1:{port}",
                 "--http",
@@ -80,18 +75,10 @@ def main() -> int:
                 "--synchronous",
                 args.synchronous,
                 *(["--trace-processes"] if args.trace_processes else []),
-            ],
-            cwd=ROOT,
-            stderr=subprocess.PIPE,
-            text=True,
+            ]
         )
         session = None
         try:
-            for line in server.stderr:  # its configuration first, then "ready"
-                if "ready" in line:
-                    break
-            else:
-                raise SystemExit("server did not start")
             session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
             acks = AckedScans(session, "default", robots)
             if args.http_clients:

@@ -24,11 +24,8 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import shutil
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -39,7 +36,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import mine_map  # noqa: E402
-from acked import BLOCK, AckedScans  # noqa: E402
+from live_server import BLOCK, AckedScans, start_server  # noqa: E402
 from query3d import REGION_CELLS, RESOLUTION, machine_line  # noqa: E402
 
 from gmm_core import Grid  # noqa: E402
@@ -49,7 +46,6 @@ from services.sim.processes import free_port  # noqa: E402
 from services.sim.worlds import make_world  # noqa: E402
 from services.zenoh_config import zenoh_config  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 POLL_S = 0.05  # the answer that shows a change is seen within this (and a request's 0.2 s patience)
 
 
@@ -58,18 +54,8 @@ class Served:
 
     def __init__(self, data: str):
         zport, self.hport = free_port(), free_port()
-        pin = ["taskset", "-c", "0"] if shutil.which("taskset") else []
-        self.process = subprocess.Popen(
-            pin + [sys.executable, "-m", "services.cli", "server", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
-                   "--http", f"127.0.0.1:{self.hport}", "--data-dir", data, "--trace-threads", "1"],
-            cwd=ROOT, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        for line in self.process.stderr:
-            if "ready" in line:
-                break
-        else:
-            raise SystemExit("the server did not start")
-        threading.Thread(target=self.process.stderr.read, daemon=True).start()  # its log, not to block it
+        flags = ["--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--http", f"127.0.0.1:{self.hport}"]
+        self.process = start_server([*flags, "--data-dir", data, "--trace-threads", "1"], one_core=True)
         self.session = zenoh.open(zenoh_config("peer", connect=[f"tcp/127.0.0.1:{zport}"]))
 
     def fill(self, messages: list[bytes], updates: list[bytes]) -> None:
@@ -143,7 +129,7 @@ def run(messages: list[bytes], updates: list[bytes], region: Grid, truth: np.nda
                 held = server.revision(last.robot)
                 return (*server.region(region), held)
 
-            _, (fixed, fixed_spc, _, _) = until(ask_after, accounts)
+            _, (_, fixed_spc, _, _) = until(ask_after, accounts)
             visible_s = time.perf_counter() - start
             _, (fixed_refined, _, _, _) = until(ask_after, lambda a: accounts(a) and a[1] == 4.0)
             return {

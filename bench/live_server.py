@@ -1,17 +1,39 @@
-"""Scan messages put to a real `gmmap server` over Zenoh, waited for until it acknowledges each
-(an Ack comes after the SQLite commit: stored durably). Shared by the benches that fill a server."""
+"""A real `gmmap server` for the benches that fill one: started and waited for until ready, and
+scan messages put to it over Zenoh until it acknowledges each (an Ack comes after the SQLite
+commit: stored durably)."""
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
 from protocol import Ack, ack_key, decode, scan_key
 
+ROOT = Path(__file__).resolve().parents[1]
 BLOCK = zenoh.CongestionControl.BLOCK  # as an agent puts: never dropped under load
+
+
+def start_server(flags: Sequence[str], one_core: bool = False) -> subprocess.Popen:
+    """`gmmap server` with `flags`, once it says it is ready (its configuration first, then "ready");
+    pinned to core 0 with taskset where `one_core` and taskset exists. Its log is read on meanwhile,
+    so a full pipe never blocks it."""
+    pin = ["taskset", "-c", "0"] if one_core and shutil.which("taskset") else []
+    command = [*pin, sys.executable, "-m", "services.cli", "server", *flags]
+    server = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    for line in server.stderr:
+        if "ready" in line:
+            break
+    else:
+        raise SystemExit("the server did not start")
+    threading.Thread(target=server.stderr.read, daemon=True).start()
+    return server
 
 
 class AckedScans:
