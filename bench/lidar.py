@@ -13,7 +13,8 @@ GMM and OctoMap see the same points (OctoMap: defaults, maxrange 60 m, 0.2 m):
 - AUROC at RESOLUTION against the raw counting grid of all points of all scans (cells it never
   observed left out), at keep fractions 1.0 / 0.3 / 0.1 (seeded per scan as `--keep-fraction`):
   GMM `replay(method="mc")` with the defaults through the `q` codec, OctoMap (maxrange 60 m)
-  read at the cell centres, the raw grid of the kept points.
+  read at the cell centres, the raw grid of the kept points; and the kept points' messages in
+  `q` against their float32 xyz (a sparser scan must not send more per point).
 - guard: on the first scan, a seeded subsample of `--sklearn-points` points (0: all), K as the
   defaults choose it for them; mean log-likelihood per point of `fit_scan`'s mixture and of
   scikit-learn's GaussianMixture(K, full, reg_covar 1e-4, random_state 0) on the same points;
@@ -105,6 +106,11 @@ def timing(scans: list[RangeScan], config: FitConfig) -> dict:
     )
 
 
+def q_bytes(scans: list[RangeScan], config: FitConfig) -> int:
+    """The scans' ScanMessages in `q`, bytes in all."""
+    return sum(len(encode(scan_message(fit_scan(s.hits, s.no_return, config), s), "q")) for s in scans)
+
+
 def evaluation_bbox(scans: list[RangeScan]) -> list[float]:
     """Every hit and sensor origin, +- 0.5 m, on multiples of RESOLUTION."""
     points = np.concatenate([s.pose.apply(s.hits) for s in scans] + [np.array([s.pose.t for s in scans])])
@@ -134,7 +140,10 @@ def aurocs(name: str, config, settings, fractions) -> list[tuple]:
         tree = octomap_tree(scans, RESOLUTION, MAX_RANGE)
         a_oct = grid_auroc(octomap_prob(tree, grid, observed), *truth)
         del tree
-        rows.append((fraction, grid_auroc(gmm.prob, *truth), a_oct, grid_auroc(raw.prob, *truth), observed.sum()))
+        share = q_bytes(scans, config) / sum(12 * len(s.hits) for s in scans)
+        rows.append(
+            (fraction, grid_auroc(gmm.prob, *truth), a_oct, grid_auroc(raw.prob, *truth), observed.sum(), share)
+        )
     return rows
 
 
@@ -221,11 +230,11 @@ def main() -> None:
             f"{1e3 * t['fit'][w, 1]:.1f} ms CPU, OctoMap {1e3 * t['insert'][w, 1]:.0f} ms CPU, {ratio[w]:.1f}x"
         )
     if quality:
-        print("\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | cells scored |")
-        print("|---|---|---|---|---|---|")
+        print("\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | cells scored | q / raw xyz |")
+        print("|---|---|---|---|---|---|---|")
         for name, rows in quality.items():
-            for f, a_gmm, a_oct, a_raw, cells in rows:
-                print(f"| {name} | {f:.0%} | {a_gmm:.4f} | {a_oct:.4f} | {a_raw:.4f} | {cells:,} |")
+            for f, a_gmm, a_oct, a_raw, cells, share in rows:
+                print(f"| {name} | {f:.0%} | {a_gmm:.4f} | {a_oct:.4f} | {a_raw:.4f} | {cells:,} | {share:.2%} |")
     print(
         "\n| data, first scan | points | K | log-lik/point ours | scikit-learn | ours - scikit-learn "
         "| ours s | scikit-learn s | scikit-learn's other seeds - seed 0 |"

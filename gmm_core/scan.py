@@ -42,6 +42,12 @@ class ScanModel:
         return self.occupied.n_components + self.free.n_components
 
 
+POINTS_PER_COMPONENT = 3.0  # a 2D scan's points per component (Sec. IV-C)
+# A 3D scan's points per component at least: at about 13 bytes a component in `q`, a message is
+# then at most 3.7 % of its points' float32 xyz at any density. A sparse or long-range scan
+# occupies a 1 m cell every few points, so the cells alone let it send 11-14 % (BALM scans
+# stretched to 60 m); with 30, AUROC at 10 % of BALM's points rose (docs/BENCHMARKS.md, seventeenth session).
+DENSE_3D_POINTS_PER_COMPONENT = 30.0
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
 DENSE_3D_VOXEL_MAX_ITER = 10  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15 part 3)
@@ -58,8 +64,10 @@ class FitConfig:
     more than the cells of size `component_size` that the points occupy (a dense 3D scan needs
     one component per patch of surface, not one per three points), and no more than
     `max_components`, which bounds the message size. `for_dimension` resolves the defaults that
-    depend on the scan: `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in
-    3D; `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
+    depend on the scan: `points_per_component` None means `POINTS_PER_COMPONENT` in 2D and
+    `DENSE_3D_POINTS_PER_COMPONENT` in 3D (which bounds a 3D message to a few per cent of its
+    points' bytes); `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in 3D;
+    `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
     `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`, and
     `voxel_near_range` None `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that range from the sensor the
     voxels are twice `voxel_size`, where a lidar's rings lie farther apart than a voxel.
@@ -69,7 +77,7 @@ class FitConfig:
     of 80k points in milliseconds. With 0, EM runs on the points themselves (gmm_core.em).
     """
 
-    points_per_component: float = 3.0  # points per component, > 0
+    points_per_component: float | None = None  # > 0; None: POINTS_PER_COMPONENT in 2D, DENSE_3D_... in 3D
     component_size: float | None = None  # m, > 0; None: none in 2D, DENSE_3D_COMPONENT_SIZE in 3D
     max_components: int = 4096  # per mixture, >= 1
     max_range: float = 10.0  # m, where no-return beams end (long free rays bleed through walls)
@@ -81,8 +89,10 @@ class FitConfig:
     voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
 
     def __post_init__(self):
-        for name in ("points_per_component", "max_range", "reg_covar"):
+        for name in ("max_range", "reg_covar"):
             require_number(f"fit.{name}", getattr(self, name), positive=True)
+        if self.points_per_component is not None:
+            require_number("fit.points_per_component", self.points_per_component, positive=True)
         require_number("fit.tol", self.tol, positive=False)
         if self.component_size is not None:
             require_number("fit.component_size", self.component_size, positive=True)
@@ -97,32 +107,34 @@ class FitConfig:
 
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
-        component_size = DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size
-        voxel_size = (DENSE_3D_VOXEL_SIZE if self.voxel_size is None else self.voxel_size) if dim == 3 else 0.0
-        voxel_max_iter = DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter
-        near = DENSE_3D_VOXEL_NEAR_RANGE if self.voxel_near_range is None else self.voxel_near_range
-        resolved = (component_size, voxel_size, voxel_max_iter, near)
-        if resolved == (self.component_size, self.voxel_size, self.voxel_max_iter, self.voxel_near_range):
-            return self
-        return replace(
+        voxel_size = self.voxel_size if self.voxel_size is not None else DENSE_3D_VOXEL_SIZE
+        resolved = replace(
             self,
-            component_size=component_size,
-            voxel_size=voxel_size,
-            voxel_max_iter=voxel_max_iter,
-            voxel_near_range=near,
+            points_per_component=self._points_per_component(dim),
+            component_size=DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size,
+            voxel_size=voxel_size if dim == 3 else 0.0,
+            voxel_max_iter=DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter,
+            voxel_near_range=DENSE_3D_VOXEL_NEAR_RANGE if self.voxel_near_range is None else self.voxel_near_range,
         )
+        return self if resolved == self else resolved
 
     def n_components(self, points: np.ndarray) -> int:
         if len(points) == 0:
             return 0
-        k = self.n_components_of_count(len(points))
+        k = self.n_components_of_count(len(points), points.shape[1])
         if self.component_size is not None:
             k = min(k, count_voxels(points, float(self.component_size)))
         return max(1, k)
 
-    def n_components_of_count(self, n_points: int) -> int:
+    def n_components_of_count(self, n_points: int, dim: int) -> int:
         """n_components without the cap of occupied cells (which the voxel fit counts itself)."""
-        return max(1, min(int(np.ceil(n_points / self.points_per_component)), self.max_components))
+        per_component = self._points_per_component(dim)
+        return max(1, min(int(np.ceil(n_points / per_component)), self.max_components))
+
+    def _points_per_component(self, dim: int) -> float:
+        if self.points_per_component is not None:
+            return self.points_per_component
+        return DENSE_3D_POINTS_PER_COMPONENT if dim == 3 else POINTS_PER_COMPONENT
 
 
 def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitConfig()) -> ScanModel:
@@ -142,7 +154,7 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
             max_iter = min(config.max_iter, config.voxel_max_iter or DENSE_3D_VOXEL_MAX_ITER)
             return fit_mixture_voxels(
                 points,
-                config.n_components_of_count(len(points)),
+                config.n_components_of_count(len(points), dim),
                 config.voxel_size,
                 cell_size=config.component_size,
                 near_range=config.voxel_near_range or DENSE_3D_VOXEL_NEAR_RANGE,

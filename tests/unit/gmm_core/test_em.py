@@ -138,7 +138,9 @@ def test_fit_scan_uses_free_beams_at_max_range():
 def test_component_count_follows_points_and_component_size():
     rng = np.random.default_rng(3)
     patch = rng.uniform(0, 1, (3000, 3)) * [2.0, 2.0, 0.01]  # a 2 m x 2 m patch of surface
-    assert FitConfig().n_components(patch) == 1000
+    assert FitConfig(points_per_component=3.0).n_components(patch) == 1000
+    assert FitConfig().n_components(patch) == 100  # 3D: at least 30 points a component
+    assert FitConfig().n_components(patch[:, :2]) == 1000  # 2D: 3 points a component
     assert FitConfig(component_size=0.5).n_components(patch) == 16
     assert FitConfig(component_size=0.5, max_components=10).n_components(patch) == 10
 

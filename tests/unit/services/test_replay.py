@@ -110,6 +110,27 @@ def test_inspect_reports_bytes_against_raw(data_dir, capsys):
     assert report["bytes"] / report["components"] <= 10.0  # issue 4: <= 10 B per 2D component
 
 
+def test_inspect_of_a_sparse_long_range_lidar_sequence_sends_under_5_percent_of_its_xyz(tmp_path, capsys):
+    # Issue 15's message target on the kind of scan that missed it: an outdoor 64-ring scan reaches
+    # 60 m, where it occupies a 1 m cell every few points (one component per cell sent 9 % here).
+    import json
+
+    from pypcd4 import PointCloud
+
+    from support.lidar import ring_scan
+
+    rng = np.random.default_rng(0)
+    for number in range(2):
+        PointCloud.from_xyz_points(ring_scan(rng).astype(np.float32)).save(tmp_path / f"{number:06d}.pcd")
+    (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 5 0 1 0 0 0 0 1 0\n")  # KITTI rows
+    every_scan = ["--keyframe-distance", "0", "--keyframe-angle", "0"]
+    flags = ["--format", "pcd", "--poses", str(tmp_path / "poses.txt"), "--json", *every_scan]
+    assert main(["inspect", str(tmp_path), *flags]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["scans"] == 2 and report["raw_bytes"] > 2 * 12 * 30_000
+    assert report["bytes"] <= 0.05 * report["raw_bytes"], report
+
+
 def test_analytic_method_is_2d_only_and_close_to_monte_carlo(data_dir, tmp_path):
     log = str(data_dir / "carmen" / "intel-corrected.log.gz")
     maps = {}
