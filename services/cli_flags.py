@@ -38,7 +38,12 @@ def config_flag(p: argparse.ArgumentParser) -> None:
 def fit_flags(p: argparse.ArgumentParser) -> None:
     setting(p, "--max-range", "fit.max_range", type=float, help="where no-return beams end, m")
     setting(
-        p, "--points-per-component", "fit.points_per_component", type=float, help="about this many points per component"
+        p,
+        "--points-per-component",
+        "fit.points_per_component",
+        type=float,
+        metavar="N",
+        help="at least this many points a component, on average (default: 3 in 2D, 30 in 3D)",
     )
     setting(
         p,
