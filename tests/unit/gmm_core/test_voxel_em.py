@@ -253,9 +253,9 @@ def test_fit_recovers_well_separated_clusters():
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 15 open: 10 EM passes on 0.25 m voxels sharing one responsibility end 0.14-0.34 nats/point "
-    "below scikit-learn's converged EM (Kurt3D -0.316 vs +0.020 here, K 200; BENCHMARKS.md, part 3), more than 5 % "
-    "(of a log-density near 0 in metres; on held-out points ours is ahead: BENCHMARKS.md, fifteenth session)",
+    reason="issue 15 open: 10 EM passes on 0.25 m voxels end 0.14-0.34 nats/point below scikit-learn's converged "
+    "EM here (Kurt3D -0.316 vs +0.020, K 200), more than 5 % of a log-density near 0 in metres; on a whole BALM "
+    "scan -0.51 nats (-25.8 %): the passes, the once-found candidates, the voxels (BENCHMARKS.md, seventeenth session)",
 )
 @pytest.mark.parametrize(
     "scan", [("kurt3d", {}), ("octomap/scan.dat.bz2", {"origin": (0, 0, 0.49)})], ids=["kurt3d", "octomap"]
