@@ -50,7 +50,9 @@ POINTS_PER_COMPONENT = 3.0  # a 2D scan's points per component (Sec. IV-C)
 DENSE_3D_POINTS_PER_COMPONENT = 30.0
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
-DENSE_3D_VOXEL_MAX_ITER = 10  # EM passes over those voxels at most (docs/BENCHMARKS.md, issue 15 part 3)
+# EM passes over those voxels at most: 8 over-relaxed ones end above 10 plain ones on every BALM
+# scan (voxel_em._OVERRELAXATION; docs/BENCHMARKS.md, eighteenth session)
+DENSE_3D_VOXEL_MAX_ITER = 8
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 
