@@ -296,9 +296,10 @@ def test_fit_recovers_well_separated_clusters():
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 15 open: 10 EM passes on 0.25 m voxels end 0.14-0.34 nats/point below scikit-learn's converged "
-    "EM here (Kurt3D -0.316 vs +0.020, K 200), more than 5 % of a log-density near 0 in metres; on a whole BALM "
-    "scan -0.51 nats (-25.8 %): the passes, the once-found candidates, the voxels (BENCHMARKS.md, seventeenth session)",
+    reason="issue 15 open: 8 over-relaxed EM passes on 0.25 m voxels end 0.16-0.33 nats/point below scikit-learn's "
+    "converged EM here (Kurt3D -0.307 vs +0.020, the OctoMap scan -1.515 vs -1.352, K 200), more than 5 % of a "
+    "log-density near 0 in metres; on a whole BALM scan -0.51 nats (-25.8 %) with 10 plain passes: the passes, the "
+    "once-found candidates, the voxels (BENCHMARKS.md, seventeenth and eighteenth sessions)",
 )
 @pytest.mark.parametrize(
     "scan", [("kurt3d", {}), ("octomap/scan.dat.bz2", {"origin": (0, 0, 0.49)})], ids=["kurt3d", "octomap"]
