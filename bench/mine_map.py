@@ -4,11 +4,14 @@ The same fleet (world, paths, odometry, beams) the sim's robots build, through t
 policy and fit; each scan published at the robot's own estimate, as the agent sends it, and one
 final pose-graph update per robot that moves every node to its true pose (the sim's last
 closure converges to the truth). Encoded as on the wire and kept in a cache file (npz of wire
-bytes), so a benchmark run spends its time on the queries, not on the world and the fit.
+bytes), so a benchmark run spends its time on the queries, not on the world and the fit. The file
+holds a fingerprint of the code that builds the map: a change of the fit, the wire format or the
+sim makes the next run build it again (a stale map once measured the old fit's region).
 """
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,17 @@ from services.sim.fleet import DEFAULT_RATE, SimulatedFleet, correction_interval
 WORLD, ROBOTS, DURATION_S = "mine", 2, 30.0
 FLEET = "default"
 CACHE = Path(__file__).resolve().parent / ".cache" / "mine_map.npz"
+ROOT = Path(__file__).resolve().parent.parent
+BUILT_BY = ("gmm_core", "protocol", "services/sim", "services/datasets")  # the code whose output the cache holds
+
+
+def fingerprint() -> str:
+    """SHA-256 of the sources under BUILT_BY, path and contents, in path order."""
+    digest = hashlib.sha256()
+    for path in sorted(p for folder in BUILT_BY for p in (ROOT / folder).rglob("*.py")):
+        digest.update(str(path.relative_to(ROOT)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def build(seed: int = 0) -> tuple[list[bytes], list[bytes], np.ndarray]:
@@ -44,18 +58,22 @@ def build(seed: int = 0) -> tuple[list[bytes], list[bytes], np.ndarray]:
 
 
 def load(cache: Path = CACHE) -> tuple[list[bytes], list[bytes], np.ndarray]:
-    """`build()`, from the cache file when there is one (made on the first call)."""
-    if not cache.exists():
-        messages, updates, position = build()
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(
-            cache,
-            messages=np.array(messages, dtype=object),
-            updates=np.array(updates, dtype=object),
-            position=position,
-        )
-    data = np.load(cache, allow_pickle=True)
-    return list(data["messages"]), list(data["updates"]), data["position"]
+    """`build()`, from the cache file when it was made by the code as it is now (else made again)."""
+    code = fingerprint()
+    if cache.exists():
+        data = np.load(cache, allow_pickle=True)
+        if "fingerprint" in data.files and str(data["fingerprint"]) == code:
+            return list(data["messages"]), list(data["updates"]), data["position"]
+    messages, updates, position = build()
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(
+        cache,
+        messages=np.array(messages, dtype=object),
+        updates=np.array(updates, dtype=object),
+        position=position,
+        fingerprint=code,
+    )
+    return messages, updates, position
 
 
 def shifted(update: PoseGraphUpdate, revision: int, shift: float) -> PoseGraphUpdate:
