@@ -397,12 +397,14 @@ def _pack_components(weights, mu, covs, packed):
 
 
 @njit(cache=True, inline="always")
-def _valid(s, reg_covar):
-    """Whether summed statistics s (10,) give a positive weight and, with reg_covar on the
-    diagonal, a positive definite covariance (its leading minors positive): over-relaxed sums
-    can overshoot either."""
+def _moments(s, reg_covar):
+    """Mean and covariance (lower triangle: 00, 10, 11, 20, 21, 22) of summed statistics s (10,),
+    reg_covar on the diagonal, as em._m_step; and whether they make a component: a positive weight
+    and a positive definite covariance (its leading minors positive), which over-relaxed sums can
+    overshoot."""
     inverse = 1.0 / max(s[0], 1e-300)
     m0, m1, m2 = s[1] * inverse, s[2] * inverse, s[3] * inverse
+    # Features' upper triangle: 4: 00, 5: 01, 6: 02, 7: 11, 8: 12, 9: 22 (em._features).
     c00 = max(s[4] * inverse - m0 * m0, 0.0) + reg_covar
     c11 = max(s[7] * inverse - m1 * m1, 0.0) + reg_covar
     c22 = max(s[9] * inverse - m2 * m2, 0.0) + reg_covar
@@ -410,7 +412,8 @@ def _valid(s, reg_covar):
     c20 = s[6] * inverse - m0 * m2
     c21 = s[8] * inverse - m1 * m2
     det = c00 * (c11 * c22 - c21 * c21) - c10 * (c10 * c22 - c21 * c20) + c20 * (c10 * c21 - c11 * c20)
-    return s[0] > 0.0 and c00 * c11 - c10 * c10 > 0.0 and det > 0.0
+    valid = s[0] > 0.0 and c00 * c11 - c10 * c10 > 0.0 and det > 0.0
+    return m0, m1, m2, c00, c10, c11, c20, c21, c22, valid
 
 
 @njit(cache=True)
@@ -432,22 +435,17 @@ def _add_block(now, last, counted, step, total, plain):
 def _m_step_packed(stats, plain, reg_covar, packed):
     """em._m_step of the summed statistics (K, 10) straight into packed rows (_pack_components'):
     the M-step the E-steps between searches need, without writing and reading the parameters.
-    A row of `stats` that is not _valid is taken from `plain` (EM's own sums) instead."""
+    A row of `stats` that makes no component (_moments) is taken from `plain` (EM's own sums)."""
     total = 0.0
     for k in range(stats.shape[0]):
         total += stats[k, 0]
     for k in range(stats.shape[0]):
-        s = stats[k] if _valid(stats[k], reg_covar) else plain[k]
-        inverse = 1.0 / max(s[0], 1e-300)
-        m0, m1, m2 = s[1] * inverse, s[2] * inverse, s[3] * inverse
-        # Features' upper triangle: 4: 00, 5: 01, 6: 02, 7: 11, 8: 12, 9: 22 (em._features).
-        c00 = max(s[4] * inverse - m0 * m0, 0.0) + reg_covar
-        c11 = max(s[7] * inverse - m1 * m1, 0.0) + reg_covar
-        c22 = max(s[9] * inverse - m2 * m2, 0.0) + reg_covar
-        c10 = s[5] * inverse - m0 * m1
-        c20 = s[6] * inverse - m0 * m2
-        c21 = s[8] * inverse - m1 * m2
-        _pack_row(packed[k], s[0] / total, m0, m1, m2, c00, c10, c11, c20, c21, c22)
+        w = stats[k, 0]
+        m0, m1, m2, c00, c10, c11, c20, c21, c22, valid = _moments(stats[k], reg_covar)
+        if not valid:
+            w = plain[k, 0]
+            m0, m1, m2, c00, c10, c11, c20, c21, c22, _ = _moments(plain[k], reg_covar)
+        _pack_row(packed[k], w / total, m0, m1, m2, c00, c10, c11, c20, c21, c22)
 
 
 @njit(cache=True, inline="always")
@@ -551,7 +549,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     The schedule is em._refine's: voxel i in block i mod B, the M-step after every block from
     the second pass on (Neal & Hinton 1998). From the third pass, a block's sums count moved
     `overrelaxation` times their change since its last pass (1: plain EM); a component whose moved
-    sums are not _valid takes EM's own, and after a pass whose bound fell, the steps are plain.
+    sums make no component (_moments) takes EM's own, and after a pass whose bound fell, the steps are plain.
     """
     m, d = means.shape
     k_count = weights.shape[0]
@@ -591,7 +589,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
             break
         previous = bound
     for k in range(k_count):  # the parameters the last E-step's M-step packed
-        if not _valid(total[k], reg_covar):
+        if not _moments(total[k], reg_covar)[-1]:
             total[k] = plain[k]
     em._m_step(total, reg_covar, weights, mu, covs)
     return passes, bound
