@@ -4,6 +4,7 @@ tracers are saturated, and what /metrics says of both. Real uvicorn on 127.0.0.1
 from __future__ import annotations
 
 import json
+import time
 import urllib.request
 
 import pytest
@@ -21,6 +22,7 @@ from support.saturation import saturated_tracers
 from support.uvicorn_thread import Server
 
 ORIGIN = "http://viewer.example"
+KINDS = ("fresh", "updated", "stale", "coalesced", "shed")  # of gmmap_tile_answers_total
 
 
 @pytest.fixture(scope="module")
@@ -63,10 +65,21 @@ def test_every_occupancy_answer_says_how_old_its_state_is(server, messages):
     with tile.lock:  # as if another request were updating it now: its previous state is served
         status, headers, _ = get(url)
     assert status == 200 and 0 < float(headers["X-Map-Age"]) <= MAX_STALE_S
-    assert get(url)[1]["X-Map-Age"] == "0.000000"  # brought up to date
-    for kind, count in (("fresh", 1), ("updated", 2), ("stale", 1), ("coalesced", 0), ("shed", 0)):
-        assert metric(server, f'gmmap_tile_answers_total{{kind="{kind}"}}') == count, kind
-    assert metric(server, "gmmap_tile_age_seconds_count") == 4
+    # Brought up to date: the next request starts the update and waits for it for PATIENCE_S; on a
+    # loaded host (a fresh-clone run beside other tests) the update can take longer, and that
+    # request is served the previous state while it runs. Asked again until up to date.
+    ages = [float(get(url)[1]["X-Map-Age"])]
+    while ages[-1] > 0 and len(ages) < 200:
+        time.sleep(0.05)
+        ages.append(float(get(url)[1]["X-Map-Age"]))
+    assert ages[-1] == 0 and all(0 < age <= MAX_STALE_S for age in ages[:-1]), ages
+    waits = len(ages) - 1
+    answers = {kind: metric(server, f'gmmap_tile_answers_total{{kind="{kind}"}}') for kind in KINDS}
+    # Up to date: updated (the first trace, and the request that waited for the update) or fresh
+    # (the cached state, and the update done before the request came).
+    assert answers["fresh"] + answers["updated"] == 3 and answers["fresh"] >= 1 and answers["updated"] >= 1, answers
+    assert (answers["stale"], answers["coalesced"], answers["shed"]) == (1 + waits, 0, 0), answers
+    assert metric(server, "gmmap_tile_age_seconds_count") == 4 + waits
     assert metric(server, 'gmmap_tile_age_seconds_bucket{le="0.0"}') == 3
 
 

@@ -2,6 +2,8 @@
 matrix inverses, the E-step of the expanded points and scipy's densities point by point, and
 scikit-learn's GaussianMixture with the same K."""
 
+from itertools import islice
+
 import numpy as np
 import pytest
 from scipy.special import logsumexp
@@ -323,16 +325,19 @@ def test_fit_scan_log_likelihood_within_5_percent_of_scikit_learn(data_dir, scan
 
 def test_over_relaxed_passes_end_above_plain_em_with_more_passes(data_dir):
     # The defaults' 8 over-relaxed passes against 10 plain ones (overrelaxation 1) on real lidar
-    # scans: the log-likelihood per point of the scan's own points must not fall.
+    # scans: the log-likelihood per point must not fall (on every 40th point: Mixture.log_density,
+    # the plain reference, solves K x n systems; the gain is 0.017-0.044 on whole scans).
     from services.datasets import read_scans
 
-    for scan in list(read_scans(data_dir / "3d" / "balm-os0", fmt="pcd"))[:3]:
+    passes = FitConfig().for_dimension(3).voxel_max_iter
+    for scan in islice(read_scans(data_dir / "3d" / "balm-os0", fmt="pcd"), 3):
         points = scan.hits
         k = FitConfig().for_dimension(3).n_components_of_count(len(points), 3)
         fit = dict(cell_size=1.0, near_range=12.0)
-        relaxed = fit_mixture_voxels(points, k, 0.25, max_iter=FitConfig().for_dimension(3).voxel_max_iter, **fit)
+        relaxed = fit_mixture_voxels(points, k, 0.25, max_iter=passes, **fit)
         plain = fit_mixture_voxels(points, k, 0.25, max_iter=10, overrelaxation=1.0, **fit)
-        assert relaxed.log_density(points).mean() >= plain.log_density(points).mean()
+        scored = points[::40]
+        assert relaxed.log_density(scored).mean() > plain.log_density(scored).mean()
 
 
 def test_fit_config_resolves_and_checks_the_voxel_fields():
