@@ -50,10 +50,10 @@ _AXIS_ITERATIONS = 8
 _KEPT_COMPONENTS = 4
 _SEARCH_BOX_SIGMAS = 3.0
 # Over-relaxed M-step (_voxel_em): each block's sums move this many times the change of an EM
-# step, from the third pass on (Salakhutdinov & Roweis, ICML 2003). On the ten BALM scans, 8 such
-# passes end 0.01-0.04 nats a point above 10 plain passes, in 8-10 % less time; 10 such passes
+# step, from the third pass on (Salakhutdinov & Roweis, ICML 2003). On the 15 BALM scans, 8 such
+# passes end 0.017-0.044 nats a point above 10 plain passes, the fit 1.08x faster; 10 such passes
 # gain 0.04-0.10 on 10 plain ones; 2.5 instead of 1.9 overshoots (docs/BENCHMARKS.md, eighteenth
-# session). A pass whose bound falls ends it: plain EM from there on.
+# session). After a pass whose bound falls, plain EM.
 _OVERRELAXATION = 1.9
 # Hash grid and blocks of the voxel EM: as em._refine's for points, with more cells (voxels are
 # sparse in the box of a scan) and smaller blocks (a voxel stands for several points).
@@ -331,7 +331,7 @@ def _split(means, sums, n_groups, d):
         i, j = first[g], last[g] - 1
         for at in range(first[g], last[g]):
             # Without a branch on the side (a coin flip the CPU mispredicts half the time): the
-            # voxel is written at both ends and the end of its side moves on; 1.2x faster.
+            # voxel is written at both ends and the end of its side moves on; 1.13-1.19x faster.
             v = order[at]
             side = -cut
             for a in range(d):
