@@ -537,12 +537,14 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
 
 
 @njit(cache=True)
-def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol, n_kept, overrelaxation):
+def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol, n_kept, overrelaxation, search_every):
     """Truncated incremental EM on voxels in place, at most `max_iter` passes, until the bound per
     point changes by less than `tol`; returns (passes, bound per point).
 
     The first pass searches each voxel's candidates (the components whose _SEARCH_BOX_SIGMAS box
-    reaches its hash cell) and keeps its `n_kept` most likely; the other passes score only those.
+    reaches its hash cell) and keeps its `n_kept` most likely; the other passes score only those,
+    but for every `search_every`-th after the first (0: none), which searches again among the
+    candidates of the components as they are then, and takes EM's own step.
     Such a pass is an exact E-step for responsibilities restricted to the kept components, so, as
     a full E-step, it does not lower a bound on the log-likelihood (truncated EM, Luecke & Eggert
     2010), and it costs a few scores per voxel instead of about ten.
@@ -571,13 +573,19 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     passes = 0
     while passes < max_iter:
         passes += 1
+        search = passes == 1 or (search_every > 0 and (passes - 1) % search_every == 0)
+        if search and passes > 1:
+            _unpack(total, plain, reg_covar, weights, mu, covs)
+            start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
         now, last = fresh[passes % 2], fresh[(passes + 1) % 2]
-        step = overrelaxation if passes > 2 else 1.0
+        # A search changes the kept lists, so the change of a block's sums since its last pass is
+        # no EM step to move further along.
+        step = overrelaxation if passes > 2 and not search else 1.0
         bound = 0.0
         for b in range(n_blocks):
             lo_i, hi_i = (b * m) // n_blocks, ((b + 1) * m) // n_blocks
             bound += _e_step_block(
-                means, sums, scatter, lo_i, hi_i, passes == 1, voxel_cell, start, items, packed, kept, n_kept_of, now[b]
+                means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, items, packed, kept, n_kept_of, now[b]
             )
             _add_block(now[b], last[b], counted[b], step, total, plain)
             if passes > 1 or b == n_blocks - 1:
@@ -588,11 +596,20 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
         if abs(bound - previous) < tol:
             break
         previous = bound
-    for k in range(k_count):  # the parameters the last E-step's M-step packed
-        if not _moments(total[k], reg_covar)[-1]:
-            total[k] = plain[k]
-    em._m_step(total, reg_covar, weights, mu, covs)
+    _unpack(total, plain, reg_covar, weights, mu, covs)  # the parameters the last E-step's M-step packed
     return passes, bound
+
+
+@njit(cache=True)
+def _unpack(total, plain, reg_covar, weights, mu, covs):
+    """The parameters _m_step_packed packs from `total` into weights, mu and covs (em._m_step's):
+    a row of `total` that makes no component is taken from `plain`. `total` stays the sum of what
+    the blocks counted."""
+    chosen = total.copy()
+    for k in range(total.shape[0]):
+        if not _moments(total[k], reg_covar)[-1]:
+            chosen[k] = plain[k]
+    em._m_step(chosen, reg_covar, weights, mu, covs)
 
 
 def fit_mixture_voxels(
@@ -606,11 +623,15 @@ def fit_mixture_voxels(
     max_iter: int = 100,
     tol: float = 1e-3,
     overrelaxation: float = _OVERRELAXATION,
+    search_every: int = 0,
 ) -> Mixture:
     """A mixture of at most `n_components` Gaussians for (n, 3) points, by EM on the statistics
     of voxels of size `voxel_size` (m) from a top-down split; `reg_covar`, `max_iter` and `tol`
     as in em.fit_mixture (tol bounds the change of the bound per point), `overrelaxation` the
-    factor of the M-step from the third pass (1: plain EM). With `cell_size` (m),
+    factor of the M-step from the third pass (1: plain EM), `search_every` the passes between
+    searches of each voxel's candidates after the first (0: the first pass only; searched on every
+    pass, on finer voxels, with more passes, the fit reaches scikit-learn's converged EM at several
+    times the time, docs/BENCHMARKS.md). With `cell_size` (m),
     also at most one component per occupied cell of that size (count_voxels(points, cell_size)),
     counted from the voxels when it is a whole number of voxels. Points farther than `near_range`
     (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
@@ -641,7 +662,7 @@ def fit_mixture_voxels(
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)
     _voxel_em(
         means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol), _KEPT_COMPONENTS,
-        float(overrelaxation),
+        float(overrelaxation), int(search_every),
     )  # fmt: skip
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), mu[keep] + shift, covs[keep], n)
