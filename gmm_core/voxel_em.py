@@ -643,6 +643,8 @@ def fit_mixture_voxels(
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"fit_mixture_voxels: points must be (n, 3), got {points.shape}")
+    if search_every < 0:
+        raise ValueError(f"fit_mixture_voxels: search_every must be >= 0 (0: the first pass only), got {search_every}")
     n, d = points.shape
     if n == 0:
         return Mixture.empty(d)

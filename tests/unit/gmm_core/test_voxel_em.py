@@ -379,6 +379,8 @@ def test_fit_config_resolves_and_checks_the_voxel_fields():
         fit_mixture_voxels(np.zeros((10, 2)), 2, 0.25)
     with pytest.raises(ValueError, match="NaN or inf"):
         fit_mixture_voxels(np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]]), 1, 0.25)
+    with pytest.raises(ValueError, match="search_every"):
+        fit_mixture_voxels(np.zeros((10, 3)), 2, 0.25, search_every=-1)
     with pytest.raises(ValueError, match="2\\^19 voxels"):
         fit_mixture_voxels(np.array([[0.0, 0.0, 0.0], [1e6, 0.0, 0.0]]), 1, 0.25)
     assert FitConfig().for_dimension(3).voxel_near_range > 0
