@@ -2,6 +2,7 @@
 matrix inverses, the E-step of the expanded points and scipy's densities point by point, and
 scikit-learn's GaussianMixture with the same K."""
 
+from functools import cache
 from itertools import islice
 
 import numpy as np
@@ -303,6 +304,7 @@ SUBSAMPLED_SCANS = {
 }
 
 
+@cache  # scikit-learn's EM takes seconds; two tests ask for the OctoMap scan's
 def subsample_and_reference(data_dir, name):
     """A seeded 6,000-point subsample of the first scan of a real 3D set, K as the 3D defaults
     choose it (one component per occupied 1 m cell), and scikit-learn's mean log-likelihood per
