@@ -110,6 +110,9 @@ class Tile:
     changes: int = 0  # bumped when a new or moved node may reach the tile
     prob: np.ndarray | None = None  # None until the first trace succeeded
     prob_at: int = -1  # `changes` when `prob` was computed
+    # The fewest samples per cell a node of `prob` is counted with: the state's, published with it (an
+    # update changes `thinned` while it traces, before its state is published).
+    prob_samples_per_cell: float = 0.0
     robots: tuple[str, ...] | None = None  # the robots counted; None: all
     outdated_since: float | None = None  # monotonic time of the first change `prob` lacks; None: up to date
     dirty_since: float | None = None  # that of the first change since the running (or last) update began
@@ -334,7 +337,7 @@ class TileCache:
                 if before is not None and tile.prob is not before and max_age > 0:
                     # It waited for another request's update: that state, however much of a backlog
                     # it left (MAX_UPDATE_NODES), rather than a turn at the next update.
-                    return self._answer(tile, tile.prob, _age(tile), "updated")
+                    return self._answer(tile, _age(tile), "updated")
                 patient = deadline is not None and time.monotonic() < deadline
                 cached = self._cached(tile, max_age, patient, waited)
                 if cached is _WAIT:
@@ -404,6 +407,8 @@ class TileCache:
                 raise
             prob = map_estimate(tile.hits, tile.misses, self.prior)
             prob.setflags(write=False)
+            # The state's samples per cell (a tile holds thinned nodes only where busy_samples_per_cell is set).
+            state_samples_per_cell = self.busy_samples_per_cell if tile.thinned else self.samples_per_cell
             seconds = time.monotonic() - start
             if self.report_slow and seconds > SLOW_UPDATE_S:
                 log.warning(
@@ -415,6 +420,7 @@ class TileCache:
                 # A change after the snapshot bumped `changes` (and set `dirty_since`): the next
                 # query updates again, and this state has been out of date since that change.
                 tile.prob, tile.prob_at, tile.seen = prob, changes, seen
+                tile.prob_samples_per_cell = state_samples_per_cell
                 tile.outdated_since = tile.dirty_since
                 if partial:
                     tile.prob_at = changes - 1  # so it is not up to date ...
@@ -426,7 +432,7 @@ class TileCache:
                     self._updates += 1
                 self._thinned_updates += samples_per_cell is not None
                 self._nodes.log.drop_before(min((t.seen for t in self._tiles.values()), default=seen))
-                return self._answer(tile, prob, _age(tile), "updated")
+                return self._answer(tile, _age(tile), "updated")
 
     def _refresh(self, tile: Tile) -> None:
         """Update `tile` in the background (a request served its previous state meanwhile)."""
@@ -464,12 +470,12 @@ class TileCache:
             if tile.unrefined and max_age <= 0:
                 return None  # every change, with every sample: refined by this request
             if waited:
-                return self._answer(tile, tile.prob, 0.0, "updated")
+                return self._answer(tile, 0.0, "updated")
             self._hits += 1
             if tile.unrefined and not (tile.refreshing or tile.lock.locked()) and self._tracers.load().idle:
                 tile.refreshing = True  # refined in the background while the tracers are idle
                 self._refresher.submit(self._refresh, tile)
-            return self._answer(tile, tile.prob, 0.0, "fresh")
+            return self._answer(tile, 0.0, "fresh")
         age = _age(tile)
         if age > max_age or max_age <= 0:
             return None
@@ -477,7 +483,7 @@ class TileCache:
             if patient:
                 return _WAIT
             self._stale += 1
-            return self._answer(tile, tile.prob, age, "stale")
+            return self._answer(tile, age, "stale")
         load = self._tracers.load()
         if not (load.busy or load.saturated):
             if not patient:
@@ -487,15 +493,15 @@ class TileCache:
             return _WAIT
         if not load.saturated and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
             self._coalesced += 1
-            return self._answer(tile, tile.prob, age, "coalesced")
+            return self._answer(tile, age, "coalesced")
         tile.refreshing = True
         self._refresher.submit(self._refresh, tile)
         self._stale += 1
-        return self._answer(tile, tile.prob, age, "stale")
+        return self._answer(tile, age, "stale")
 
-    def _answer(self, tile: Tile, prob: np.ndarray, age: float, kind: str) -> TileAnswer:
-        # A tile holds thinned nodes only where busy_samples_per_cell is set.
-        return TileAnswer(prob, age, kind, self.busy_samples_per_cell if tile.thinned else self.samples_per_cell)
+    def _answer(self, tile: Tile, age: float, kind: str) -> TileAnswer:
+        """The tile's state as served. Under the map's lock."""
+        return TileAnswer(tile.prob, age, kind, tile.prob_samples_per_cell)
 
     def _admit(self, may_shed: bool) -> None:
         """Raise TracersSaturated (counted) when `may_shed` and the tracers are saturated."""

@@ -285,6 +285,33 @@ def test_a_large_update_is_thinned_on_idle_tracers_unless_every_change_is_asked(
     assert exact.samples_per_cell == 4.0 and np.array_equal(exact.prob, offline(messages[:32], None, {}))
 
 
+def test_an_answer_states_the_samples_per_cell_of_the_state_it_serves(messages, monkeypatch):
+    """While a refinement has traced but not yet published its state, the thinned state is served
+    as thinned: the samples per cell go with the state, not with the tile's bookkeeping. (They were
+    read from the tile, which a refinement updates before it publishes: a client that waited for
+    the map's samples per cell was served the thinned state, as bench/region_served.py saw.)"""
+    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
+    fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    thinned = fleet.occupancy_answer(GRID, patience=0.0)  # 20 nodes, afresh: thinned
+    assert thinned.samples_per_cell == 1.0
+    estimating, publish = threading.Event(), threading.Event()
+    estimate = tiles.map_estimate
+
+    def held(hits, misses, prior):  # the refinement's state, held before it is published
+        estimating.set()
+        assert publish.wait(30)
+        return estimate(hits, misses, prior)
+
+    monkeypatch.setattr(tiles, "map_estimate", held)
+    assert fleet.occupancy_answer(GRID).kind == "fresh"  # served as it is, refined behind it
+    assert estimating.wait(30)
+    during = fleet.occupancy_answer(GRID)
+    publish.set()
+    assert during.prob is thinned.prob and (during.kind, during.samples_per_cell) == ("fresh", 1.0)
+    wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
+    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:20], None, {}))
+
+
 def test_a_correction_by_less_than_a_cell_reaches_the_tile_on_idle_tracers(messages, monkeypatch):
     """Busy tracers keep a node moved by less than BUSY_REPOSE_CELLS at the pose held; where it moved
     by more than REPOSE_CELLS it is loose, and idle tracers trace it again at its pose, as they refine
