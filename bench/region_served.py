@@ -11,7 +11,8 @@ x 40 cells at 0.1 m around the last robot, npy) on the server's empty tile cache
 - first answer: the time to it, the samples per cell it holds (X-Map-Samples-Per-Cell: a large
   update is traced with the busy samples per cell first, tiles.py) and its AUROC against the mine
   world's truth over the cells the refined answer has evidence in;
-- refined: asked every POLL_S (0.05 s), the time until an answer holds the map's 4 samples per cell;
+- refined: asked every POLL_S (0.05 s), the time until an answer holds the map's 4 samples per cell
+  (asked again a second later: "changed after!" where that answer differs, which it must not);
 - correction: every node of the last robot moved by `--shift` m along x (a PoseGraphUpdate at a
   new revision, published as its agent would); the time from publishing it to the first answer
   that accounts for it (the server holds the revision and X-Map-Age is 0), and until that is refined.
@@ -117,6 +118,10 @@ def run(messages: list[bytes], updates: list[bytes], region: Grid, truth: np.nda
             first_s, (first, first_spc, _) = until(ask, lambda a: True)
             _, (refined, _, _) = until(ask, lambda a: a[1] == 4.0 and a[2] == 0.0)
             refined_s = time.perf_counter() - start
+            # Nothing changes now: an answer that says it holds every sample is the last one (a
+            # refinement once said so before it published its state: docs/BENCHMARKS.md, twentieth session).
+            time.sleep(1.0)
+            refined_held = np.array_equal(ask()[0], refined)
             seen = refined != 0.5
             moved = mine_map.shifted(last, revision=last.revision + 1, shift=shift)
             start = time.perf_counter()
@@ -138,6 +143,7 @@ def run(messages: list[bytes], updates: list[bytes], region: Grid, truth: np.nda
                 "first_auroc": auroc(first[seen], truth[seen]),
                 "refined_s": refined_s,
                 "refined_auroc": auroc(refined[seen], truth[seen]),
+                "refined_held": refined_held,
                 "correction_s": visible_s,
                 "correction_spc": fixed_spc,
                 "correction_changed": not np.array_equal(fixed_refined, refined),
@@ -166,7 +172,8 @@ def main() -> None:
         r = run(messages, updates, region, truth, args.shift)
         print(
             f"| {i} | {r['first_s']:.2f} s | {r['first_spc']:g}, {r['first_auroc']:.5f} | {r['refined_s']:.2f} s, "
-            f"{r['refined_auroc']:.5f} | {r['correction_s']:.2f} s | {r['correction_spc']:g} | "
+            f"{r['refined_auroc']:.5f}{'' if r['refined_held'] else ' (changed after!)'} | {r['correction_s']:.2f} s "
+            f"| {r['correction_spc']:g} | "
             f"{r['correction_refined_s']:.2f} s{'' if r['correction_changed'] else ' (unchanged!)'} |",
             flush=True,
         )
