@@ -467,8 +467,10 @@ class TileCache:
         if tile.prob is None:
             return None
         if tile.prob_at == tile.changes:
-            if tile.unrefined and max_age <= 0:
-                return None  # every change, with every sample: refined by this request
+            if max_age <= 0 and (tile.unrefined or tile.prob_samples_per_cell < self.samples_per_cell):
+                # Every change, with every sample: refined by this request, or by the refinement that
+                # has traced and not yet published (the tile's bookkeeping runs ahead of its state).
+                return None
             if waited:
                 return self._answer(tile, 0.0, "updated")
             self._hits += 1

@@ -206,15 +206,15 @@ def test_a_request_for_every_change_refines_a_thinned_tile_at_once(messages, mon
     assert np.array_equal(exact.prob, offline(messages[:20], None, {}))
 
 
-def offline(messages, update, samples_per_cell: dict[int, float]) -> np.ndarray:
-    """p(occupied) on GRID of `messages` re-posed by `update`, each node traced with
+def offline(messages, update, samples_per_cell: dict[int, float], grid: Grid = GRID) -> np.ndarray:
+    """p(occupied) on `grid` of `messages` re-posed by `update`, each node traced with
     `samples_per_cell[node]` (default the map's), summed exactly as a tile sums them."""
     fleet = fleet_of(messages)
     if update is not None:
         fleet.apply_poses(update)
-    reaching = fleet._nodes.reaching(GRID, None)
+    reaching = fleet._nodes.reaching(grid, None)
     counted = [posed._replace(samples_per_cell=samples_per_cell.get(key[1])) for key, posed in reaching.items()]
-    hits, misses = fleet._tracers.trace(GRID, counted, [])
+    hits, misses = fleet._tracers.trace(grid, counted, [])
     return map_estimate(hits, misses, fleet.prior)
 
 
@@ -289,10 +289,12 @@ def test_an_answer_states_the_samples_per_cell_of_the_state_it_serves(messages, 
     """While a refinement has traced but not yet published its state, the thinned state is served
     as thinned: the samples per cell go with the state, not with the tile's bookkeeping. (They were
     read from the tile, which a refinement updates before it publishes: a client that waited for
-    the map's samples per cell was served the thinned state, as bench/region_served.py saw.)"""
+    the map's samples per cell was served the thinned state, as bench/region_served.py saw.) A
+    request for every change (max_age 0) meanwhile waits for the refined state."""
     monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
-    thinned = fleet.occupancy_answer(GRID, patience=0.0)  # 20 nodes, afresh: thinned
+    grid = Grid(GRID.origin + 0.05, GRID.resolution, GRID.shape)  # off the lattice: max_age 0 asks this tile too
+    thinned = fleet.occupancy_answer(grid, patience=0.0)  # 20 nodes, afresh: thinned
     assert thinned.samples_per_cell == 1.0
     estimating, publish = threading.Event(), threading.Event()
     estimate = tiles.map_estimate
@@ -303,13 +305,21 @@ def test_an_answer_states_the_samples_per_cell_of_the_state_it_serves(messages, 
         return estimate(hits, misses, prior)
 
     monkeypatch.setattr(tiles, "map_estimate", held)
-    assert fleet.occupancy_answer(GRID).kind == "fresh"  # served as it is, refined behind it
+    assert fleet.occupancy_answer(grid).kind == "fresh"  # served as it is, refined behind it
     assert estimating.wait(30)
-    during = fleet.occupancy_answer(GRID)
+    during = fleet.occupancy_answer(grid)
+    exact = []
+    every_change = threading.Thread(target=lambda: exact.append(fleet.occupancy_answer(grid, max_age=0)))
+    every_change.start()
+    every_change.join(0.3)
+    waited = every_change.is_alive()
     publish.set()
+    every_change.join(30)
     assert during.prob is thinned.prob and (during.kind, during.samples_per_cell) == ("fresh", 1.0)
-    wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
-    assert np.array_equal(fleet.occupancy(GRID), offline(messages[:20], None, {}))
+    refined = offline(messages[:20], None, {}, grid)
+    assert waited and exact[0].samples_per_cell == 4.0 and np.array_equal(exact[0].prob, refined)
+    assert fleet.occupancy_answer(grid).samples_per_cell == 4.0
+    assert np.array_equal(fleet.occupancy(grid), refined)
 
 
 def test_a_correction_by_less_than_a_cell_reaches_the_tile_on_idle_tracers(messages, monkeypatch):
