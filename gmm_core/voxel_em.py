@@ -323,7 +323,7 @@ def _split(means, sums, n_groups, d):
     group_sums[0] = sums.sum(axis=0)
     heap = [(-_spread(group_sums[0], d), 0)]
     count = 1
-    left = np.empty(f)
+    smaller = np.empty(f)  # the sums of the smaller side of a cut
     axis, product, cov = np.empty(d), np.empty(d), np.empty((d, d))
     while count < n_groups and len(heap) > 0:
         _, g = heapq.heappop(heap)
@@ -331,7 +331,6 @@ def _split(means, sums, n_groups, d):
         cut = 0.0  # the mean's coordinate along the axis
         for a in range(d):
             cut += group_sums[g, 1 + a] / group_sums[g, 0] * axis[a]
-        left[:] = 0.0
         i, j = first[g], last[g] - 1
         for at in range(first[g], last[g]):
             # Without a branch on the side (a coin flip the CPU mispredicts half the time): the
@@ -341,8 +340,6 @@ def _split(means, sums, n_groups, d):
             for a in range(d):
                 side += means[v, a] * axis[a]
             low = side <= 0.0
-            for q in range(f):
-                left[q] += np.float64(low) * sums[v, q]
             scratch[i] = v
             scratch[j] = v
             i += np.int64(low)
@@ -350,10 +347,22 @@ def _split(means, sums, n_groups, d):
         if i == first[g] or i == last[g]:
             continue  # this group cannot be cut; it stays as it is
         order[first[g] : last[g]] = scratch[first[g] : last[g]]
+        # The smaller side's sums added up, the other's the group's less those: 0.84 against 1.06 ms a
+        # BALM scan's split (#0, #3, #4) when each voxel's sums, times 0 or 1, were added to the low
+        # side's as it was partitioned (docs/BENCHMARKS.md, twentieth session).
+        low_smaller = i - first[g] <= last[g] - i
+        begin, end = (first[g], i) if low_smaller else (i, last[g])
+        smaller[:] = 0.0
+        for at in range(begin, end):
+            v = order[at]
+            for q in range(f):
+                smaller[q] += sums[v, q]
+        for q in range(f):
+            rest = group_sums[g, q] - smaller[q]
+            group_sums[g, q] = smaller[q] if low_smaller else rest
+            group_sums[count, q] = rest if low_smaller else smaller[q]
         first[count], last[count] = i, last[g]
-        group_sums[count] = group_sums[g] - left
         last[g] = i
-        group_sums[g] = left
         for h in (g, count):
             if last[h] - first[h] > 1:
                 heapq.heappush(heap, (-_spread(group_sums[h], d), h))
