@@ -110,10 +110,16 @@ def test_inspect_reports_bytes_against_raw(data_dir, capsys):
     assert report["bytes"] / report["components"] <= 10.0  # issue 4: <= 10 B per 2D component
 
 
-def test_inspect_of_a_sparse_long_range_lidar_sequence_sends_under_5_percent_of_its_xyz(tmp_path, capsys):
+def test_inspect_of_a_sparse_long_range_lidar_sequence_sends_under_5_percent_of_its_xyz(tmp_path, capsys, monkeypatch):
     # Issue 15's message target on the kind of scan that missed it: an outdoor 64-ring scan reaches
     # 60 m, where it occupies a 1 m cell every few points (one component per cell sent 9 % here).
+    # fit_s times the scans' fits only: numba's kernels are loaded first, by a fit of a slice.
     import json
+
+    from services import replay
+
+    fitted, fit_scan = [], replay.fit_scan
+    monkeypatch.setattr(replay, "fit_scan", lambda hits, *rest: fitted.append(len(hits)) or fit_scan(hits, *rest))
 
     from pypcd4 import PointCloud
 
@@ -129,6 +135,8 @@ def test_inspect_of_a_sparse_long_range_lidar_sequence_sends_under_5_percent_of_
     report = json.loads(capsys.readouterr().out)
     assert report["scans"] == 2 and report["raw_bytes"] > 2 * 12 * 30_000
     assert report["bytes"] <= 0.05 * report["raw_bytes"], report
+    assert fitted[0] == replay.KERNEL_POINTS and len(fitted) == 3 and min(fitted[1:]) > 30_000
+    assert report["kernels_s"] > 0.0 and report["fit_s"] > 0.0
 
 
 def test_analytic_method_is_2d_only_and_close_to_monte_carlo(data_dir, tmp_path):
