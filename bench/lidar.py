@@ -57,7 +57,7 @@ from gmm_core.voxel_em import fit_mixture_voxels
 from protocol import encode
 from services.config import load_config
 from services.datasets import RangeScan, read_scans
-from services.replay import replay, scan_message
+from services.replay import load_fit_kernels, replay, scan_message
 
 DATA = ROOT.parent / "shared" / "data"
 RESOLUTION = 0.2
@@ -98,7 +98,7 @@ def since(start) -> tuple[float, float]:
 
 def timing(scans: list[RangeScan], config: FitConfig) -> dict:
     """Per scan (wall s, CPU s) of fit_scan and of OctoMap's insertion, alternately; q bytes and xyz bytes."""
-    fit_scan(scans[0].hits[:1000], scans[0].no_return, config)  # compile (or load the numba cache)
+    load_fit_kernels(scans[0], config)
     tree = octomap.OcTree(RESOLUTION)
     fit, insert, q_bytes, components = [], [], [], []
     for s in scans:

@@ -116,14 +116,13 @@ def test_inspect_of_a_sparse_long_range_lidar_sequence_sends_under_5_percent_of_
     # fit_s times the scans' fits only: numba's kernels are loaded first, by a fit of a slice.
     import json
 
+    from pypcd4 import PointCloud
+
     from services import replay
+    from support.lidar import ring_scan
 
     fitted, fit_scan = [], replay.fit_scan
     monkeypatch.setattr(replay, "fit_scan", lambda hits, *rest: fitted.append(len(hits)) or fit_scan(hits, *rest))
-
-    from pypcd4 import PointCloud
-
-    from support.lidar import ring_scan
 
     rng = np.random.default_rng(0)
     for number in range(2):
