@@ -25,6 +25,10 @@ GMM and OctoMap see the same points (OctoMap: defaults, maxrange 60 m, 0.2 m):
 
     NUMBA_NUM_THREADS=1 .venv/bin/python bench/lidar.py [--sets balm kurt3d octomap] [--no-auroc]
 
+Another sequence (a directory of scans with poses, as `gmmap inspect` reads it) is measured the same
+way with `--data DIR --format pcd --poses FILE` (`--origin x,y,z` for an xyz file); it is named by
+its directory and measured alone unless `--sets` names the stored sets too.
+
 `--stretch S` scales every scene by S first (hits about their sensor, poses' translations about the
 map's origin; points beyond 60 m still dropped): BALM at `--stretch 3 --fractions 0.45 0.135` stands
 in for an outdoor 64-ring scan of ~33k points reaching 60 m (its 1 m cells hold a few points each).
@@ -219,7 +223,11 @@ def intel_2d() -> tuple[int, float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
+    parser.add_argument("--sets", nargs="+", default=None, choices=list(SETS), help="default: all, or none with --data")
+    parser.add_argument("--data", type=Path, default=None, help="another data set: a scan directory or log")
+    parser.add_argument("--format", default=None, help="--data's format (default: guessed from the path)")
+    parser.add_argument("--poses", type=Path, default=None, help="--data's poses file (pcd, ply, kitti)")
+    parser.add_argument("--origin", type=float, nargs=3, default=None, help="--data's sensor origin (xyz files)")
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0, 0.3, 0.1])
     parser.add_argument("--sklearn-points", type=int, default=10_000, help="guard subsample (0: every point)")
     parser.add_argument("--sklearn-seeds", type=int, default=1, help="scikit-learn fits per guard (random_state 0..)")
@@ -231,12 +239,17 @@ def main() -> None:
         help="scale each scene by this (x3 with --fractions 0.45 0.135: BALM as a 33k-point outdoor scan to 60 m)",
     )
     args = parser.parse_args()
+    sets = args.sets if args.sets is not None else ([] if args.data else list(SETS))
+    if args.data:
+        options = {"fmt": args.format, "poses": args.poses, "origin": args.origin}
+        SETS[args.data.name] = (args.data, {key: value for key, value in options.items() if value is not None})
+        sets.append(args.data.name)
     settings = load_config()
     config = settings.fit.for_dimension(3)
     print(machine_line())
     print(f"fit {config}; reconstruction {settings.reconstruction}\n")
     times, quality, guards = {}, {}, {}
-    for name in args.sets:
+    for name in sets:
         times[name] = timing(read(name, 1.0, args.stretch), config)
         guards[name] = guard(name, config, args.sklearn_points, max(args.sklearn_seeds, 1), args.stretch)
         if not args.no_auroc:
