@@ -23,6 +23,7 @@ Three steps:
 from __future__ import annotations
 
 import heapq
+import math
 
 import numpy as np
 from numba import njit
@@ -63,6 +64,7 @@ _OVERRELAXATION = 1.9
 # sparse in the box of a scan) and smaller blocks (a voxel stands for several points).
 _CELLS_PER_VOXEL = 8
 _BLOCK_VOXELS_PER_COMPONENT = 2
+_ROW = 10  # numbers per packed component (_pack_components)
 
 
 @njit(cache=True, inline="always")
@@ -73,6 +75,8 @@ def _voxel_key(points, i, d, size, far_squared):
     r2 = 0.0
     for a in range(d):
         r2 += points[i, a] * points[i, a]
+    if not r2 < np.inf:  # NaN or inf in the point (em.checked_points' check, here at no extra pass)
+        raise ValueError("voxels: points contain NaN or inf")
     far = r2 > far_squared
     if far:
         size = 2.0 * size
@@ -157,21 +161,6 @@ def count_voxels(points, size):
     for i in range(points.shape[0]):
         keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf)
     return _numbered(keys)[1]
-
-
-@njit(cache=True)
-def _finite_mean(points):
-    """The mean of the (n, d) points; ValueError if one is NaN or inf (em.checked_points' check:
-    a NaN or inf makes its axis' sum one, and so does a sum beyond the float range)."""
-    n, d = points.shape
-    mean = np.zeros(d)
-    for i in range(n):
-        for a in range(d):
-            mean[a] += points[i, a]
-    for a in range(d):
-        if not np.isfinite(mean[a]):
-            raise ValueError("fit_mixture_voxels: points contain NaN or inf")
-    return mean / max(n, 1)
 
 
 @njit(cache=True)
@@ -372,36 +361,34 @@ def _split(means, sums, n_groups, d):
 
 @njit(cache=True, inline="always")
 def _pack_row(row, w, m0, m1, m2, c00, c10, c11, c20, c21, c22):
-    """One component (weight w, mean m, covariance c by its lower triangle) as a row of 16 (see
-    _pack_components); the 3x3 Cholesky factor and its inverse written out, no scratch arrays."""
-    l00 = np.sqrt(c00)
-    l10 = c10 / l00
-    l20 = c20 / l00
-    l11 = np.sqrt(c11 - l10 * l10)
-    l21 = (c21 - l20 * l10) / l11
-    l22 = np.sqrt(c22 - l20 * l20 - l21 * l21)
-    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-    i10 = -l10 * i00 * i11
-    i21 = -l21 * i11 * i22
-    i20 = -(l20 * i00 + l21 * i10) * i22
+    """One component (weight w, mean m, covariance c by its lower triangle) as a row of _ROW (see
+    _pack_components). Sigma^-1 from the cofactors of Sigma over its determinant: no square roots
+    and one division, where a Cholesky factor took three of each and three more divisions (the
+    packing runs once a block for every component: 1.07x the whole fit, docs/BENCHMARKS.md,
+    twenty-first session)."""
+    a00 = c11 * c22 - c21 * c21
+    a10 = c20 * c21 - c10 * c22
+    a20 = c10 * c21 - c11 * c20
+    a11 = c00 * c22 - c20 * c20
+    a21 = c10 * c20 - c00 * c21
+    a22 = c00 * c11 - c10 * c10
+    inverse_det = 1.0 / (c00 * a00 + c10 * a10 + c20 * a20)
     row[0], row[1], row[2] = m0, m1, m2
-    row[3], row[4], row[5], row[6], row[7], row[8] = i00, i10, i11, i20, i21, i22
-    row[9] = i00 * i00 + i10 * i10 + i20 * i20
-    row[10] = 2.0 * (i10 * i11 + i20 * i21)
-    row[11] = 2.0 * i20 * i22
-    row[12] = i11 * i11 + i21 * i21
-    row[13] = 2.0 * i21 * i22
-    row[14] = i22 * i22
-    row[15] = np.log(w / (l00 * l11 * l22)) - 1.5 * em._LOG_2PI  # one log: log pi - log det(L)
+    row[3] = a00 * inverse_det
+    row[4] = 2.0 * a10 * inverse_det
+    row[5] = 2.0 * a20 * inverse_det
+    row[6] = a11 * inverse_det
+    row[7] = 2.0 * a21 * inverse_det
+    row[8] = a22 * inverse_det
+    row[9] = 0.5 * np.log(w * w * inverse_det) - 1.5 * em._LOG_2PI  # one log: log pi - log det(Sigma) / 2
 
 
 @njit(cache=True)
 def _pack_components(weights, mu, covs, packed):
-    """Each 3D component as one row of `packed` (K, 16), what _score reads: mu (3), L^-1 of
-    Sigma = L L^T (lower triangle by rows: 00, 10, 11, 20, 21, 22), Sigma^-1 = L^-T L^-1 (upper
-    triangle by rows, off-diagonal entries doubled: 00, 01, 02, 11, 12, 22) and
-    log pi - log det(2 pi Sigma) / 2. One contiguous row per component keeps a score within two
-    cache lines."""
+    """Each 3D component as one row of `packed` (K, _ROW), what _score reads: mu (3), Sigma^-1
+    (upper triangle by rows, off-diagonal entries doubled: 00, 01, 02, 11, 12, 22, the order of a
+    voxel's scatter) and log pi - log det(2 pi Sigma) / 2. One contiguous row of 80 bytes per
+    component."""
     for k in range(weights.shape[0]):
         c = covs[k]
         _pack_row(
@@ -430,11 +417,17 @@ def _moments(s, reg_covar):
 
 
 @njit(cache=True)
-def _add_block(now, last, counted, step, total, plain):
+def _add_block(now, last, counted, step, total, plain, reg_covar, total_weight, packed, pack):
     """A block's fresh sums `now` (K, 10) into the totals: `plain`, the sum of every block's
     latest sums (EM's own step), and `total`, where the block counts its sums of the last pass
     `last` moved `step` times their change (over-relaxation; 1: its fresh sums). `counted`: what
-    the block counted in `total` so far, updated."""
+    the block counted in `total` so far, updated.
+
+    With `pack`, each component's M-step from its new totals straight into its packed row
+    (_pack_components'), in the same loop: the M-step the E-steps between searches need, without
+    writing and reading the parameters. A component whose `total` makes no component (_moments)
+    is packed from `plain`. `total_weight`: the points' count, what the weights in `total` sum to
+    once every block is counted (a voxel's responsibilities sum to 1, moved or not)."""
     for k in range(now.shape[0]):
         for q in range(now.shape[1]):
             change = now[k, q] - last[k, q]
@@ -442,44 +435,50 @@ def _add_block(now, last, counted, step, total, plain):
             plain[k, q] += change
             total[k, q] += moved - counted[k, q]
             counted[k, q] = moved
-
-
-@njit(cache=True)
-def _m_step_packed(stats, plain, reg_covar, packed):
-    """em._m_step of the summed statistics (K, 10) straight into packed rows (_pack_components'):
-    the M-step the E-steps between searches need, without writing and reading the parameters.
-    A row of `stats` that makes no component (_moments) is taken from `plain` (EM's own sums)."""
-    total = 0.0
-    for k in range(stats.shape[0]):
-        total += stats[k, 0]
-    for k in range(stats.shape[0]):
-        w = stats[k, 0]
-        m0, m1, m2, c00, c10, c11, c20, c21, c22, valid = _moments(stats[k], reg_covar)
-        if not valid:
-            w = plain[k, 0]
-            m0, m1, m2, c00, c10, c11, c20, c21, c22, _ = _moments(plain[k], reg_covar)
-        _pack_row(packed[k], w / total, m0, m1, m2, c00, c10, c11, c20, c21, c22)
+        if pack:
+            w = total[k, 0]
+            m0, m1, m2, c00, c10, c11, c20, c21, c22, valid = _moments(total[k], reg_covar)
+            if not valid:
+                w = plain[k, 0]
+                m0, m1, m2, c00, c10, c11, c20, c21, c22, _ = _moments(plain[k], reg_covar)
+            _pack_row(packed[k], w / total_weight, m0, m1, m2, c00, c10, c11, c20, c21, c22)
 
 
 @njit(cache=True, inline="always")
 def _score(packed, k, means, scatter, i):
-    """log pi_k + the mean over voxel i's points of log N(x | mu_k, Sigma_k): the Mahalanobis
-    distance of the voxel's mean plus tr(Sigma_k^-1 S_i) for its scatter S_i (Verbeek et al.)."""
+    """log pi_k + the mean over voxel i's points of log N(x | mu_k, Sigma_k): with m_i the voxel's
+    mean and S_i its scatter, the mean of (x - mu)^T Sigma^-1 (x - mu) is
+    tr(Sigma^-1 ((m_i - mu)(m_i - mu)^T + S_i)) (Verbeek et al.)."""
     x0 = means[i, 0] - packed[k, 0]
     x1 = means[i, 1] - packed[k, 1]
     x2 = means[i, 2] - packed[k, 2]
-    y0 = packed[k, 3] * x0
-    y1 = packed[k, 4] * x0 + packed[k, 5] * x1
-    y2 = packed[k, 6] * x0 + packed[k, 7] * x1 + packed[k, 8] * x2
-    trace = (
-        packed[k, 9] * scatter[i, 0]
-        + packed[k, 10] * scatter[i, 1]
-        + packed[k, 11] * scatter[i, 2]
-        + packed[k, 12] * scatter[i, 3]
-        + packed[k, 13] * scatter[i, 4]
-        + packed[k, 14] * scatter[i, 5]
+    distance = (
+        packed[k, 3] * (x0 * x0 + scatter[i, 0])
+        + packed[k, 4] * (x0 * x1 + scatter[i, 1])
+        + packed[k, 5] * (x0 * x2 + scatter[i, 2])
+        + packed[k, 6] * (x1 * x1 + scatter[i, 3])
+        + packed[k, 7] * (x1 * x2 + scatter[i, 4])
+        + packed[k, 8] * (x2 * x2 + scatter[i, 5])
     )
-    return packed[k, 15] - 0.5 * (y0 * y0 + y1 * y1 + y2 * y2 + trace)
+    return packed[k, 9] - 0.5 * distance
+
+
+@njit(cache=True, inline="always")
+def _log(x):
+    """np.log of a positive, finite x, within 1e-13: x = 2^e m with m in [1/sqrt(2), sqrt(2)),
+    log m = 2 atanh(z) with z = (m - 1) / (m + 1), |z| < 0.172, by its series to z^15. The bound
+    takes one per voxel and pass, of a sum in [1, kept]: glibc's log was 11 % of the voxel EM's
+    profile (docs/BENCHMARKS.md, twentieth session); this one is a few multiplications."""
+    m, e = math.frexp(x)
+    if m < 0.7071067811865476:
+        m *= 2.0
+        e -= 1
+    z = (m - 1.0) / (m + 1.0)
+    z2 = z * z
+    series = 1.0 / 13.0 + z2 / 15.0
+    for c in (1.0 / 11.0, 1.0 / 9.0, 1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0, 1.0):
+        series = c + z2 * series
+    return e * 0.6931471805599453 + 2.0 * z * series
 
 
 @njit(cache=True)
@@ -545,7 +544,7 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
             k = kept[i, j]
             for q in range(_N_FEATURES):
                 stats[k, q] += r * sums[i, q]
-        bound += sums[i, 0] * (best + np.log(norm))
+        bound += sums[i, 0] * (best + _log(norm))
     return bound
 
 
@@ -577,7 +576,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     counted = np.zeros((n_blocks, k_count, sums.shape[1]))
     total = np.zeros((k_count, sums.shape[1]))
     plain = np.zeros((k_count, sums.shape[1]))
-    packed = np.empty((k_count, 16))
+    packed = np.empty((k_count, _ROW))
     kept = np.empty((m, n_kept), dtype=np.int64)
     n_kept_of = np.zeros(m, dtype=np.int64)
     start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
@@ -600,9 +599,8 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
             bound += _e_step_block(
                 means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, items, packed, kept, n_kept_of, now[b]
             )
-            _add_block(now[b], last[b], counted[b], step, total, plain)
-            if passes > 1 or b == n_blocks - 1:
-                _m_step_packed(total, plain, reg_covar, packed)
+            pack = passes > 1 or b == n_blocks - 1
+            _add_block(now[b], last[b], counted[b], step, total, plain, reg_covar, total_weight, packed, pack)
         bound /= total_weight
         if bound < previous:
             overrelaxation = 1.0
@@ -615,7 +613,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
 
 @njit(cache=True)
 def _unpack(total, plain, reg_covar, weights, mu, covs):
-    """The parameters _m_step_packed packs from `total` into weights, mu and covs (em._m_step's):
+    """The parameters _add_block packs from `total` into weights, mu and covs (em._m_step's):
     a row of `total` that makes no component is taken from `plain`. `total` stays the sum of what
     the blocks counted."""
     chosen = total.copy()
@@ -661,7 +659,7 @@ def fit_mixture_voxels(
     n, d = points.shape
     if n == 0:
         return Mixture.empty(d)
-    shift = _finite_mean(points)
+    shift = points[0].copy()  # a point of the cloud: the second moments of x - shift stay precise
     sums, keys = _voxel_statistics(points, float(voxel_size), shift, float(near_range))
     k = int(min(max(n_components, 1), n))
     if cell_size is not None:
