@@ -279,6 +279,25 @@ def test_kept_e_step_gives_the_bound_of_shared_responsibilities_over_the_kept_co
     assert np.allclose(stats, expected, rtol=1e-9, atol=1e-6)
 
 
+def test_kept_e_step_drops_the_components_below_e_minus_20_of_the_best():
+    # Far-off components in the kept lists: they leave the lists (the others stay, in order) and
+    # the sums and bound are those over the components that stay.
+    rng = np.random.default_rng(6)
+    weights, means, covs = random_mixture(rng, 6)
+    means[:3], covs[:3] = rng.uniform(-0.5, 0.5, (3, 3)), 4.0 * np.eye(3)  # 0-2: broad, near every voxel
+    means[3:] += 40.0  # 3-5: e^-(hundreds) for every voxel
+    points = rng.uniform(-2, 2, (1500, 3))
+    sums, voxel_means, scatter, _ = voxelised(points, 0.8)
+    kept = np.tile([3, 0, 4, 1], (len(sums), 1))
+    bound, stats = kept_e_step(sums, voxel_means, scatter, packed(weights, means, covs), kept, np.full(len(sums), 4))
+    near = np.tile([0, 1, 0, 0], (len(sums), 1))
+    expected_bound, expected_stats = kept_e_step(
+        sums, voxel_means, scatter, packed(weights, means, covs), near, np.full(len(sums), 2)
+    )
+    assert (kept[:, :2] == [0, 1]).all()
+    assert bound == pytest.approx(expected_bound, rel=1e-12) and np.allclose(stats, expected_stats, rtol=1e-12)
+
+
 def test_search_keeps_each_voxels_most_likely_components():
     # One hash cell listing every component: each voxel must keep the 4 components of highest
     # score (scipy, point by point) and its sums and bound must be the kept E-step's over them.
