@@ -468,7 +468,7 @@ def _log(x):
     """np.log of a positive, finite x, within 1e-13: x = 2^e m with m in [1/sqrt(2), sqrt(2)),
     log m = 2 atanh(z) with z = (m - 1) / (m + 1), |z| < 0.172, by its series to z^15. The bound
     takes one per voxel and pass, of a sum in [1, kept]: glibc's log was 11 % of the voxel EM's
-    profile (docs/BENCHMARKS.md, twentieth session); this one is a few multiplications."""
+    profile (docs/BENCHMARKS.md, twentieth session); this one is a division and a few products."""
     m, e = math.frexp(x)
     if m < 0.7071067811865476:
         m *= 2.0
@@ -540,8 +540,8 @@ def _e_step_block(means, sums, scatter, lo_i, hi_i, search, voxel_cell, start, i
         if not search:
             # A kept component below e^-20 of the best adds nothing; it leaves the voxel's list
             # rather than be scored on every later pass (truncated EM keeps the components that
-            # matter, Luecke & Eggert 2010): 1.05x the fit, log-likelihoods within +-0.004 on BALM
-            # (docs/BENCHMARKS.md, twenty-first session).
+            # matter, Luecke & Eggert 2010): 1.04x the fit, log-likelihoods -0.006 to +0.004 on
+            # BALM's 15 scans (docs/BENCHMARKS.md, twenty-first session).
             count = 0
             for j in range(n_kept[i]):
                 if log_p[j] != 0.0:
