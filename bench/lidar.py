@@ -227,7 +227,12 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=None, help="another data set: a scan directory or log")
     parser.add_argument("--format", default=None, help="--data's format (default: guessed from the path)")
     parser.add_argument("--poses", type=Path, default=None, help="--data's poses file (pcd, ply, kitti)")
-    parser.add_argument("--origin", type=float, nargs=3, default=None, help="--data's sensor origin (xyz files)")
+    parser.add_argument(
+        "--origin",
+        type=lambda text: tuple(float(v) for v in text.split(",")),
+        default=None,
+        help="--data's x,y,z (xyz)",
+    )
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0, 0.3, 0.1])
     parser.add_argument("--sklearn-points", type=int, default=10_000, help="guard subsample (0: every point)")
     parser.add_argument("--sklearn-seeds", type=int, default=1, help="scikit-learn fits per guard (random_state 0..)")
