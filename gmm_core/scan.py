@@ -50,9 +50,11 @@ POINTS_PER_COMPONENT = 3.0  # a 2D scan's points per component (Sec. IV-C)
 DENSE_3D_POINTS_PER_COMPONENT = 30.0
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
-# EM passes over those voxels at most: 8 over-relaxed ones end above 10 plain ones on every BALM
-# scan (voxel_em._OVERRELAXATION; docs/BENCHMARKS.md, eighteenth session)
-DENSE_3D_VOXEL_MAX_ITER = 8
+# EM passes over those voxels after they are merged into groups (voxel_merge): none. The groups
+# alone end 0.12-0.49 nats a point above 8 over-relaxed passes from the old top-down split, and
+# above scikit-learn's converged EM on whole BALM scans; a pass gains 0.004-0.03 for about 2 ms
+# (docs/BENCHMARKS.md, twenty-second session).
+DENSE_3D_VOXEL_MAX_ITER = 0
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 
@@ -74,9 +76,10 @@ class FitConfig:
     `voxel_near_range` None `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that range from the sensor the
     voxels are twice `voxel_size`, where a lidar's rings lie farther apart than a voxel.
 
-    With `voxel_size` > 0, EM runs on the summed statistics of the points of each voxel of that
-    size, from a top-down split (gmm_core.voxel_em), at most `voxel_max_iter` passes: a 3D scan
-    of 80k points in milliseconds. With 0, EM runs on the points themselves (gmm_core.em).
+    With `voxel_size` > 0, the voxels of that size are merged bottom-up into the components
+    (gmm_core.voxel_merge), then EM runs on their summed statistics for at most `voxel_max_iter`
+    passes (gmm_core.voxel_em): a 3D scan of 80k points in milliseconds. With 0, EM runs on the
+    points themselves (gmm_core.em).
     """
 
     points_per_component: float | None = None  # > 0; None: POINTS_PER_COMPONENT in 2D, DENSE_3D_... in 3D
@@ -87,7 +90,7 @@ class FitConfig:
     max_iter: int = 100  # EM iterations, >= 1
     tol: float = 1e-3  # EM stops when the mean log-likelihood gains less than this, nats per point
     voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
-    voxel_max_iter: int | None = None  # EM passes over the voxels, >= 1; None: DENSE_3D_VOXEL_MAX_ITER
+    voxel_max_iter: int | None = None  # EM passes over the voxels, >= 0; None: DENSE_3D_VOXEL_MAX_ITER
     voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
 
     def __post_init__(self):
@@ -103,7 +106,7 @@ class FitConfig:
         for name in ("max_components", "max_iter"):
             require_count(f"fit.{name}", getattr(self, name))
         if self.voxel_max_iter is not None:
-            require_count("fit.voxel_max_iter", self.voxel_max_iter)
+            require_count("fit.voxel_max_iter", self.voxel_max_iter, minimum=0)
         if self.voxel_near_range is not None:
             require_number("fit.voxel_near_range", self.voxel_near_range, positive=True)
 
@@ -153,7 +156,8 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
 
     def fit(points: np.ndarray) -> Mixture:
         if config.voxel_size:
-            max_iter = min(config.max_iter, config.voxel_max_iter or DENSE_3D_VOXEL_MAX_ITER)
+            passes = DENSE_3D_VOXEL_MAX_ITER if config.voxel_max_iter is None else config.voxel_max_iter
+            max_iter = min(config.max_iter, passes)
             return fit_mixture_voxels(
                 points,
                 config.n_components_of_count(len(points), dim),

@@ -2,27 +2,24 @@
 
 Three steps:
 
-1. The points' voxels of size `voxel_size` are numbered (a hash table, one probe per point: the
-   lidar clouds here come unordered, so runs of points in one voxel are too rare to pay for a
-   check) and [1, x, x x^T] is summed per voxel.
-2. Top-down splitting of those voxels (hierarchical, as Eckart et al., CVPR 2016, ref. [10] of
-   the paper): the group with the largest scatter (sum of squared distances to its mean, what
-   k-means minimises) is cut at its mean across its principal axis until there are K groups;
-   their summed statistics give the first parameters (M-step, Sec. III-A).
-3. Truncated EM on the voxels as weighted points (Verbeek, Nunnink & Vlassis 2006): a voxel's
-   points share one responsibility, the E-step scores the voxel's mean and adds the trace of
-   its scatter, the M-step sums its statistics; each voxel's responsibility is spread over its
-   few most likely components, found by a search on a few passes and only re-scored on the
-   others (Luecke & Eggert 2010). Each pass does not lower a bound on the points'
-   log-likelihood, at the cost of M voxels times a few components instead of N points times
-   about ten. From the third pass the M-step is over-relaxed (Salakhutdinov & Roweis 2003): a
-   block's sums move _OVERRELAXATION times as far as EM's step would, which the overlapping
-   components of a scan's surfaces, slow to converge under plain EM, need.
+1. The points' voxels of size `voxel_size` are numbered and [1, x, x x^T] is summed per voxel
+   (voxels.py).
+2. The voxels are merged bottom-up into K groups, the merge that costs the classification
+   log-likelihood least first (voxel_merge.py); the groups' summed statistics give the
+   parameters (M-step, Sec. III-A). This alone ends above scikit-learn's converged EM with the
+   same K on dense scans (docs/BENCHMARKS.md, twenty-second session).
+3. Optionally (`max_iter` > 0), truncated EM on the voxels as weighted points (Verbeek, Nunnink &
+   Vlassis 2006): a voxel's points share one responsibility, the E-step scores the voxel's mean
+   and adds the trace of its scatter, the M-step sums its statistics; each voxel's
+   responsibility is spread over its few most likely components, found by a search on a few
+   passes and only re-scored on the others (Luecke & Eggert 2010). Each pass does not lower a
+   bound on the points' log-likelihood, at the cost of M voxels times a few components instead
+   of N points times about ten. From the third pass the M-step is over-relaxed (Salakhutdinov &
+   Roweis 2003): a block's sums move _OVERRELAXATION times as far as EM's step would.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
 
 import numpy as np
@@ -30,21 +27,10 @@ from numba import njit
 
 from gmm_core import em
 from gmm_core.mixture import Mixture
+from gmm_core.voxel_merge import merge_voxels
+from gmm_core.voxels import _count_cells, _means_and_scatter, _voxel_statistics, count_voxels
 
-# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^19 voxels from
-# the origin: +-26 km at 5 cm), and above them one bit for the far voxels of twice the size.
-_KEY_BITS = 20
-_FAR_BIT = 3 * _KEY_BITS
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-_FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
-_FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
-# ... when more than this share of its slots is taken: at 1/4 instead of 1/2, numbering BALM #4's
-# 85,655 points (7,464 voxels) takes 0.52 instead of 0.77 ms, fewer probes run past their slot
-# (docs/BENCHMARKS.md, twentieth session).
-_TABLE_LOAD = 4
 _N_FEATURES = 10  # [1, x, upper triangle of x x^T] of a 3D point (em._features)
-# Power iterations for a group's principal axis: the cut needs a good direction, not an exact one.
-_AXIS_ITERATIONS = 8
 # Truncated EM (_voxel_em): a voxel's responsibility is spread over at most this many components,
 # found on the first pass by a search of the components whose box of this many sigmas reaches the
 # voxel's hash cell. Mean log-likelihood per point on three BALM scans after 8 passes (issue 15
@@ -65,298 +51,6 @@ _OVERRELAXATION = 1.9
 _CELLS_PER_VOXEL = 8
 _BLOCK_VOXELS_PER_COMPONENT = 2
 _ROW = 10  # numbers per packed component (_pack_components)
-
-
-@njit(cache=True, inline="always")
-def _voxel_key(points, i, d, size, far_squared):
-    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
-    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set.
-    `d`: the points' columns."""
-    r2 = 0.0
-    for a in range(d):
-        r2 += points[i, a] * points[i, a]
-    if not r2 < np.inf:  # NaN or inf in the point (em.checked_points' check, here at no extra pass)
-        raise ValueError("voxels: points contain NaN or inf")
-    far = r2 > far_squared
-    if far:
-        size = 2.0 * size
-    key = 0
-    for a in range(d):
-        c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
-        if c < 0 or c >= 2 * _KEY_OFFSET:
-            raise ValueError("voxels: a point lies more than 2^19 voxels from the origin")
-        key = (key << _KEY_BITS) + c
-    return key + (1 << _FAR_BIT) if far else key
-
-
-@njit(cache=True)
-def _hash_table(bits):
-    """An open-addressing table of 2^bits slots: rows (key, -1 where empty; the key's voxel
-    number), side by side so that a probe reads one cache line; and the shift of the hash."""
-    return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
-
-
-@njit(cache=True, inline="always")
-def _voxel_number(table, shift, key, n_voxels):
-    """The number of the voxel `key` (linear probing); a new key gets `n_voxels`."""
-    mask = table.shape[0] - 1
-    h = np.int64((np.uint64(key) * _FIBONACCI_HASH) >> shift)
-    while table[h, 0] != -1 and table[h, 0] != key:
-        h = (h + 1) & mask
-    if table[h, 0] == -1:
-        table[h, 0] = key
-        table[h, 1] = n_voxels
-    return table[h, 1]
-
-
-@njit(cache=True)
-def _grown(table, n_voxels):
-    """`table` with room for twice `n_voxels` at 1 / _TABLE_LOAD: the table stays as small as the
-    voxels (a few hundred KB for a lidar scan's), not as the points, and so in cache."""
-    bits = 4
-    while (1 << bits) < 2 * _TABLE_LOAD * n_voxels:
-        bits += 1
-    grown, shift = _hash_table(bits)
-    for h in range(table.shape[0]):
-        if table[h, 0] != -1:
-            _voxel_number(grown, shift, table[h, 0], table[h, 1])
-    return grown, shift
-
-
-@njit(cache=True)
-def _numbered(keys):
-    """Each key's number among the distinct keys, in the order they first come (n,), and how many
-    distinct keys there are: one hash probe per key."""
-    numbers = np.empty(keys.shape[0], dtype=np.int64)
-    table, shift = _hash_table(_FIRST_TABLE_BITS)
-    i, count = 0, 0
-    while i < keys.shape[0]:
-        # The table grows here, between calls: an array assigned in a loop costs numba an atomic
-        # increment and decrement of its reference count per pass (docs/BENCHMARKS.md, twelfth
-        # session), so the loop over the keys does not assign it.
-        i, count = _number_until_full(keys, i, table, shift, numbers, count)
-        if i < keys.shape[0]:
-            table, shift = _grown(table, count)
-    return numbers, count
-
-
-@njit(cache=True)
-def _number_until_full(keys, i, table, shift, numbers, count):
-    """_numbered's numbers of keys i, i + 1, ... until the last key or a table over 1 / _TABLE_LOAD full;
-    returns the next key and the count so far."""
-    while i < keys.shape[0]:
-        numbers[i] = _voxel_number(table, shift, keys[i], count)
-        if numbers[i] == count:
-            count += 1
-        i += 1
-        if _TABLE_LOAD * count > table.shape[0]:
-            break
-    return i, count
-
-
-@njit(cache=True)
-def count_voxels(points, size):
-    """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them)."""
-    keys = np.empty(points.shape[0], dtype=np.int64)
-    for i in range(points.shape[0]):
-        keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf)
-    return _numbered(keys)[1]
-
-
-@njit(cache=True)
-def _voxel_statistics(points, voxel_size, shift, near_range):
-    """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
-    `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
-    its key (M,), voxels in the order of their first point: one hash probe per point.
-    The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
-    precise."""
-    # The dimension as a constant in each branch: the loops over the axes compile unrolled, 1.5x
-    # faster than with the columns read from the array (docs/BENCHMARKS.md, tenth session).
-    if points.shape[1] == 3:
-        return _voxel_sums(points, 3, voxel_size, shift, near_range)
-    return _voxel_sums(points, 2, voxel_size, shift, near_range)
-
-
-@njit(cache=True, inline="always")
-def _voxel_sums(points, d, voxel_size, shift, near_range):
-    """_voxel_statistics of (n, d) points."""
-    far_squared = near_range * near_range
-    n = points.shape[0]
-    point_keys = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        point_keys[i] = _voxel_key(points, i, d, voxel_size, far_squared)
-    voxel_of, n_voxels = _numbered(point_keys)
-    sums = np.zeros((n_voxels, 1 + d + d * (d + 1) // 2))
-    keys = np.empty(n_voxels, dtype=np.int64)
-    x = np.empty(d)
-    for i in range(n):
-        v = voxel_of[i]
-        keys[v] = point_keys[i]
-        for a in range(d):
-            x[a] = points[i, a] - shift[a]
-        sums[v, 0] += 1.0
-        j = 1 + d
-        for a in range(d):
-            sums[v, 1 + a] += x[a]
-            for b in range(a, d):
-                sums[v, j] += x[a] * x[b]
-                j += 1
-    return sums, keys
-
-
-@njit(cache=True)
-def _count_cells(keys, d, ratio):
-    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes; `ratio`
-    even where far voxels of twice the size are among them) hold one of the voxels `keys`:
-    count_voxels(points, ratio * voxel_size) from the voxels, not the points
-    (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
-    of two, as 4 and 0.25 m)."""
-    mask = (1 << _KEY_BITS) - 1
-    cells = np.empty(keys.shape[0], dtype=np.int64)
-    for v in range(keys.shape[0]):
-        per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
-        cell = 0
-        for a in range(d):
-            c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask
-            cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // per_cell + _KEY_OFFSET
-        cells[v] = cell
-    return _numbered(cells)[1]
-
-
-@njit(cache=True)
-def _means_and_scatter(sums):
-    """Each group's mean and its scatter (covariance of its points, upper triangle) from its sums."""
-    m, f = sums.shape
-    d = 3 if f == 10 else 2
-    means = np.empty((m, d))
-    scatter = np.empty((m, d * (d + 1) // 2))
-    for v in range(m):
-        n = sums[v, 0]
-        for a in range(d):
-            means[v, a] = sums[v, 1 + a] / n
-        j = 1 + d
-        for a in range(d):
-            for b in range(a, d):
-                s = sums[v, j] / n - means[v, a] * means[v, b]
-                scatter[v, j - 1 - d] = max(s, 0.0) if a == b else s
-                j += 1
-    return means, scatter
-
-
-@njit(cache=True)
-def _spread(group_sums, d):
-    """Sum of squared distances of a group's points to their mean: trace(sum x x^T) - |sum x|^2 / n."""
-    n = group_sums[0]
-    s = 0.0
-    j = 1 + d
-    for a in range(d):
-        s += group_sums[j] - group_sums[1 + a] ** 2 / n
-        j += d - a
-    return s
-
-
-@njit(cache=True)
-def _principal_axis(group_sums, d, cov, axis, product):
-    """The direction of largest variance of a group into `axis`, by power iteration from its widest
-    axis (`cov`, `product`: (d, d) and (d,) scratch)."""
-    n = group_sums[0]
-    j = 1 + d
-    for a in range(d):
-        for b in range(a, d):
-            c = group_sums[j] / n - group_sums[1 + a] * group_sums[1 + b] / (n * n)
-            cov[a, b] = c
-            cov[b, a] = c
-            j += 1
-    widest = 0
-    for a in range(d):
-        axis[a] = 0.0
-        if cov[a, a] > cov[widest, widest]:
-            widest = a
-    axis[widest] = 1.0
-    for _ in range(_AXIS_ITERATIONS):
-        norm = 0.0
-        for a in range(d):
-            product[a] = 0.0
-            for b in range(d):
-                product[a] += cov[a, b] * axis[b]
-            norm += product[a] * product[a]
-        if norm == 0.0:
-            break
-        for a in range(d):
-            axis[a] = product[a] / np.sqrt(norm)
-
-
-@njit(cache=True)
-def _split_groups(means, sums, n_groups):
-    """Top-down partition of the voxels (rows of `means`, `sums`) into at most `n_groups` groups.
-
-    The group of largest spread is cut at its mean across its principal axis, voxels whole, until
-    there are `n_groups` groups or none can be cut (one voxel, or all of its voxels' means on one
-    side). Returns the summed statistics of each group (G, f).
-    """
-    if means.shape[1] == 3:  # constant dimensions, as in _voxel_statistics
-        return _split(means, sums, n_groups, 3)
-    return _split(means, sums, n_groups, 2)
-
-
-@njit(cache=True, inline="always")
-def _split(means, sums, n_groups, d):
-    """_split_groups of d-dimensional voxels."""
-    m, f = means.shape[0], 1 + d + d * (d + 1) // 2
-    order = np.arange(m)
-    scratch = np.empty(m, dtype=np.int64)  # a group's voxels partitioned, before they go back to order
-    first = np.empty(n_groups, dtype=np.int64)
-    last = np.empty(n_groups, dtype=np.int64)
-    group_sums = np.empty((n_groups, f))
-    first[0], last[0] = 0, m
-    group_sums[0] = sums.sum(axis=0)
-    heap = [(-_spread(group_sums[0], d), 0)]
-    count = 1
-    smaller = np.empty(f)  # the sums of the smaller side of a cut
-    axis, product, cov = np.empty(d), np.empty(d), np.empty((d, d))
-    while count < n_groups and len(heap) > 0:
-        _, g = heapq.heappop(heap)
-        _principal_axis(group_sums[g], d, cov, axis, product)
-        cut = 0.0  # the mean's coordinate along the axis
-        for a in range(d):
-            cut += group_sums[g, 1 + a] / group_sums[g, 0] * axis[a]
-        i, j = first[g], last[g] - 1
-        for at in range(first[g], last[g]):
-            # Without a branch on the side (a coin flip the CPU mispredicts half the time): the
-            # voxel is written at both ends and the end of its side moves on; 1.13-1.19x faster.
-            v = order[at]
-            side = -cut
-            for a in range(d):
-                side += means[v, a] * axis[a]
-            low = side <= 0.0
-            scratch[i] = v
-            scratch[j] = v
-            i += np.int64(low)
-            j -= np.int64(not low)
-        if i == first[g] or i == last[g]:
-            continue  # this group cannot be cut; it stays as it is
-        order[first[g] : last[g]] = scratch[first[g] : last[g]]
-        # The smaller side's sums added up, the other's the group's less those: 0.84 against 1.06 ms a
-        # BALM scan's split (#0, #3, #4) when each voxel's sums, times 0 or 1, were added to the low
-        # side's as it was partitioned (docs/BENCHMARKS.md, twentieth session).
-        low_smaller = i - first[g] <= last[g] - i
-        begin, end = (first[g], i) if low_smaller else (i, last[g])
-        smaller[:] = 0.0
-        for at in range(begin, end):
-            v = order[at]
-            for q in range(f):
-                smaller[q] += sums[v, q]
-        for q in range(f):
-            rest = group_sums[g, q] - smaller[q]
-            group_sums[g, q] = smaller[q] if low_smaller else rest
-            group_sums[count, q] = rest if low_smaller else smaller[q]
-        first[count], last[count] = i, last[g]
-        last[g] = i
-        for h in (g, count):
-            if last[h] - first[h] > 1:
-                heapq.heappush(heap, (-_spread(group_sums[h], d), h))
-        count += 1
-    return group_sums[:count].copy()
 
 
 @njit(cache=True, inline="always")
@@ -647,9 +341,10 @@ def fit_mixture_voxels(
     overrelaxation: float = _OVERRELAXATION,
     search_every: int = 0,
 ) -> Mixture:
-    """A mixture of at most `n_components` Gaussians for (n, 3) points, by EM on the statistics
-    of voxels of size `voxel_size` (m) from a top-down split; `reg_covar`, `max_iter` and `tol`
-    as in em.fit_mixture (tol bounds the change of the bound per point), `overrelaxation` the
+    """A mixture of at most `n_components` Gaussians for (n, 3) points from the statistics of
+    voxels of size `voxel_size` (m): the voxels merged bottom-up into that many groups
+    (voxel_merge), then at most `max_iter` passes of EM on the voxels (0: none); `reg_covar`,
+    `max_iter` and `tol` as in em.fit_mixture (tol bounds the change of the bound per point), `overrelaxation` the
     factor of the M-step from the third pass (1: plain EM), `search_every` the passes between
     searches of each voxel's candidates after the first (0: the first pass only; searched on every
     pass, on finer voxels, with more passes, the fit reaches scikit-learn's converged EM at several
@@ -659,8 +354,8 @@ def fit_mixture_voxels(
     (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
     size: there the scan's rings lie farther apart than a voxel, so a voxel holds few points.
 
-    Deterministic: no seed. Fewer components come back when fewer groups can be cut than asked
-    (voxels are never cut: the voxels must be much smaller than the components).
+    Deterministic: no seed. Fewer components come back only when there are fewer voxels than
+    asked (voxels are never cut: the voxels must be much smaller than the components).
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -679,14 +374,15 @@ def fit_mixture_voxels(
             round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9 and (round(ratio) % 2 == 0 or near_range == np.inf)
         )
         k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
-    means, scatter = _means_and_scatter(sums)
-    group_sums = _split_groups(means, sums, k)
+    group_sums = merge_voxels(keys, sums, k, float(reg_covar), float(voxel_size), float(near_range))
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)
-    _voxel_em(
-        means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol), _KEPT_COMPONENTS,
-        float(overrelaxation), int(search_every),
-    )  # fmt: skip
+    if max_iter > 0:
+        means, scatter = _means_and_scatter(sums)
+        _voxel_em(
+            means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol), _KEPT_COMPONENTS,
+            float(overrelaxation), int(search_every),
+        )  # fmt: skip
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), mu[keep] + shift, covs[keep], n)

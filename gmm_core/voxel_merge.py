@@ -1,0 +1,403 @@
+"""A scan's voxels grouped bottom-up into the components of its mixture.
+
+Each voxel starts as a group with its summed statistics [n, sum x, sum x x^T] (voxels.py); neighbouring
+groups are merged, the cheapest first, until K are left. The cost of a merge is what it takes from the
+classification log-likelihood of the points, each point counted under its own group's Gaussian
+with its weight n / N (the mixture's Eq. 1 with hard assignments):
+
+    l(A) = n_A log n_A - n_A / 2 log det(Sigma_A),    cost(A, B) = l(A) + l(B) - l(A u B),
+
+less terms linear in n, which cancel (Sigma with the M-step's regulariser). So two halves of one
+flat patch merge at almost no cost, while a patch merged across a corner or a gap pays for the
+thickness it gains: the K Gaussians go where the surfaces bend, as scikit-learn's EM puts them
+after tens of passes (docs/BENCHMARKS.md, twenty-second session), instead of being spread by size.
+It is agglomerative clustering with a Gaussian likelihood linkage (Ward's method is its isotropic
+form), restricted to the voxel grid's neighbours as in Felzenszwalb & Huttenlocher's graph-based
+segmentation.
+
+The merges run in rounds: in each, the groups that are each other's cheapest neighbour (mutual
+pairs, which a greedy merge order would merge before anything they touch) are merged, the cheapest
+first, at most _MERGE_SHARE of the merges still to make; costs are kept per edge and updated for
+the edges of a merged group only. Where the neighbours run out before K groups are left (sparse
+scans: rings farther apart than a voxel), groups in the same or neighbouring cells of 2, 4, 8 ...
+voxels become neighbours and merging goes on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from gmm_core.voxels import _FAR_BIT, _KEY_BITS, _KEY_OFFSET, _lookup, _numbered, _table_of
+
+# Each round merges at most this share of the merges still to make: 0.1 / 0.25 / 0.5 / 1 gave a
+# log-likelihood per point of -1.849 / -1.849 / -1.861 / -1.966 on BALM #0 in 8.4 / 7.1 / 6.6 /
+# 6.5 ms (docs/BENCHMARKS.md, twenty-second session).
+_MERGE_SHARE = 0.25
+# Where the voxels' neighbours leave more separate pieces than this share of K (a sparse scan's
+# rings), pieces in neighbouring cells of 2, 4, ... voxels are joined by an edge each before
+# merging: the cheapest merges across a gap are then taken in their turn, not after each piece
+# has been merged into one group.
+_BRIDGED_PIECES = 0.25
+_MASK = (1 << _KEY_BITS) - 1
+
+
+@njit(cache=True, inline="always")
+def _log_likelihood(s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, reg):
+    """l = n log n - n/2 log det(Sigma + reg I) of a group from its sums (n, sum x, upper
+    triangle of sum x x^T), as -n/2 log(det / n^2)."""
+    inv = 1.0 / s0
+    m0, m1, m2 = s1 * inv, s2 * inv, s3 * inv
+    c00 = s4 * inv - m0 * m0 + reg
+    c01 = s5 * inv - m0 * m1
+    c02 = s6 * inv - m0 * m2
+    c11 = s7 * inv - m1 * m1 + reg
+    c12 = s8 * inv - m1 * m2
+    c22 = s9 * inv - m2 * m2 + reg
+    det = c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02)
+    return -0.5 * s0 * np.log(det * inv * inv)
+
+
+@njit(cache=True, inline="always")
+def _group(sums, a, reg):
+    # sums[a, q], not a row view sums[a]: a view in a loop costs numba a reference count (ARCHITECTURE.md)
+    return _log_likelihood(
+        sums[a, 0], sums[a, 1], sums[a, 2], sums[a, 3], sums[a, 4], sums[a, 5], sums[a, 6], sums[a, 7], sums[a, 8],
+        sums[a, 9], reg,
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _merged(sums, a, b, reg):
+    return _log_likelihood(
+        sums[a, 0] + sums[b, 0], sums[a, 1] + sums[b, 1], sums[a, 2] + sums[b, 2], sums[a, 3] + sums[b, 3],
+        sums[a, 4] + sums[b, 4], sums[a, 5] + sums[b, 5], sums[a, 6] + sums[b, 6], sums[a, 7] + sums[b, 7],
+        sums[a, 8] + sums[b, 8], sums[a, 9] + sums[b, 9], reg,
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _cell(keys, v, level):
+    """The (x, y, z) of voxel v in units of near voxels (a far voxel: its lowest corner), shifted
+    right by `level` (cells of 2^level near voxels)."""
+    key = keys[v]
+    far = key >> _FAR_BIT
+    x = (((key >> (2 * _KEY_BITS)) & _MASK) - _KEY_OFFSET) << far
+    y = (((key >> _KEY_BITS) & _MASK) - _KEY_OFFSET) << far
+    z = ((key & _MASK) - _KEY_OFFSET) << far
+    return x >> level, y >> level, z >> level
+
+
+@njit(cache=True, inline="always")
+def _key_of(x, y, z, far):
+    return (((x + _KEY_OFFSET) << (2 * _KEY_BITS)) + ((y + _KEY_OFFSET) << _KEY_BITS) + z + _KEY_OFFSET) + (
+        far << _FAR_BIT
+    )
+
+
+@njit(cache=True)
+def _voxel_edges(keys, voxel_size, near_range):
+    """Pairs of neighbouring voxels (eu, ev): the 26 neighbours of a voxel among those of its size,
+    and, for a near voxel at the near range, the far voxels it touches."""
+    m = keys.shape[0]
+    table, shift = _table_of(keys)
+    # at most 13 forward neighbours and 8 far voxels a voxel; the pages never written cost nothing
+    # (an array assigned in the loop, to grow it, would cost numba a reference count a pass)
+    eu = np.empty(21 * m, dtype=np.int32)
+    ev = np.empty(21 * m, dtype=np.int32)
+    n = 0
+    boundary = max(near_range - 2.0 * np.sqrt(3.0) * voxel_size, 0.0)
+    touched = np.empty(8, dtype=np.int64)
+    for v in range(m):
+        far = keys[v] >> _FAR_BIT
+        c = _cell(keys, v, far)  # in units of the voxel's own size
+        for d in range(1, 14):  # the forward half of the 26 offsets: each pair once
+            dx, dy, dz = (d + 13) // 9 - 1, ((d + 13) // 3) % 3 - 1, (d + 13) % 3 - 1
+            u = _lookup(table, shift, _key_of(c[0] + dx, c[1] + dy, c[2] + dz, far))
+            if u >= 0:
+                eu[n], ev[n] = v, u
+                n += 1
+        if far == 0:
+            r2 = ((c[0] + 0.5) ** 2 + (c[1] + 0.5) ** 2 + (c[2] + 0.5) ** 2) * voxel_size * voxel_size
+            if r2 >= boundary * boundary:
+                count = 0
+                for d in range(27):
+                    dx, dy, dz = d // 9 - 1, (d // 3) % 3 - 1, d % 3 - 1
+                    u = _lookup(table, shift, _key_of((c[0] + dx) >> 1, (c[1] + dy) >> 1, (c[2] + dz) >> 1, 1))
+                    if u < 0 or _listed(touched, count, u):
+                        continue
+                    touched[count] = u
+                    count += 1
+                    eu[n], ev[n] = v, u
+                    n += 1
+    return eu[:n].copy(), ev[:n].copy()
+
+
+@njit(cache=True, inline="always")
+def _listed(values, count, u):
+    for i in range(count):
+        if values[i] == u:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _pieces(m, eu, ev):
+    """The connected pieces of the graph of m nodes and edges (eu, ev): each node's piece, 0 .. P - 1, and P."""
+    root = np.arange(m)
+    for e in range(eu.shape[0]):
+        a, b = eu[e], ev[e]
+        while root[a] != a:
+            root[a] = root[root[a]]
+            a = root[a]
+        while root[b] != b:
+            root[b] = root[root[b]]
+            b = root[b]
+        if a != b:
+            root[max(a, b)] = min(a, b)
+    piece = np.empty(m, dtype=np.int64)
+    count = 0
+    for v in range(m):  # a root comes before the nodes that point to it
+        if root[v] == v:
+            piece[v] = count
+            count += 1
+        else:
+            piece[v] = piece[_root(root, v)]
+    return piece, count
+
+
+@njit(cache=True, inline="always")
+def _root(root, v):
+    while root[v] != v:
+        v = root[v]
+    return v
+
+
+@njit(cache=True)
+def _bridges(keys, piece, n_pieces, level):
+    """Edges between pieces (`piece` of each voxel, 0 .. n_pieces - 1) with voxels in one cell of
+    2^level near voxels or in two neighbouring ones: one edge a pair of pieces, between the first
+    voxels of each piece in such cells."""
+    m = keys.shape[0]
+    cell_keys = np.empty(m, dtype=np.int64)
+    for v in range(m):
+        x, y, z = _cell(keys, v, level)
+        cell_keys[v] = _key_of(x, y, z, 0)
+    cell_of, n_cells = _numbered(cell_keys)
+    # the distinct (cell, piece) pairs, grouped by cell, each with its first voxel
+    member_of, n_members = _numbered(cell_of * n_pieces + piece)
+    first_key = np.empty(n_cells, dtype=np.int64)
+    cell_start = np.zeros(n_cells + 1, dtype=np.int64)
+    voxel_of = np.full(n_members, -1, dtype=np.int64)
+    for v in range(m):
+        first_key[cell_of[v]] = cell_keys[v]
+        if voxel_of[member_of[v]] < 0:
+            voxel_of[member_of[v]] = v
+            cell_start[cell_of[v] + 1] += 1
+    for c in range(n_cells):
+        cell_start[c + 1] += cell_start[c]
+    members = np.empty(n_members, dtype=np.int64)
+    filled = cell_start[:-1].copy()
+    for i in range(n_members):
+        members[filled[cell_of[voxel_of[i]]]] = voxel_of[i]
+        filled[cell_of[voxel_of[i]]] += 1
+    table, shift = _table_of(first_key)
+    neighbour = np.full((n_cells, 14), -1, dtype=np.int64)  # the cell itself and the forward half of the 26
+    size = 0
+    for c in range(n_cells):
+        key = first_key[c]
+        x = ((key >> (2 * _KEY_BITS)) & _MASK) - _KEY_OFFSET
+        y = ((key >> _KEY_BITS) & _MASK) - _KEY_OFFSET
+        z = (key & _MASK) - _KEY_OFFSET
+        for d in range(13, 27):
+            other = _lookup(table, shift, _key_of(x + d // 9 - 1, y + (d // 3) % 3 - 1, z + d % 3 - 1, 0))
+            neighbour[c, d - 13] = other
+            if other >= 0:
+                size += (cell_start[c + 1] - cell_start[c]) * (cell_start[other + 1] - cell_start[other])
+    eu = np.empty(size, dtype=np.int32)
+    ev = np.empty(size, dtype=np.int32)
+    pair = np.empty(size, dtype=np.int64)
+    n = 0
+    for c in range(n_cells):
+        for other in neighbour[c]:
+            if other < 0:
+                continue
+            for i in range(cell_start[c], cell_start[c + 1]):
+                for j in range(cell_start[other], cell_start[other + 1]):
+                    a, b = piece[members[i]], piece[members[j]]
+                    if a == b:
+                        continue
+                    eu[n], ev[n] = members[i], members[j]
+                    pair[n] = min(a, b) * n_pieces + max(a, b)
+                    n += 1
+    pair_of, n_pairs = _numbered(pair[:n])
+    keep = np.empty(n_pairs, dtype=np.int64)
+    taken = 0
+    for i in range(n):
+        if pair_of[i] == taken:  # numbers are handed out in order: a first occurrence
+            keep[taken] = i
+            taken += 1
+    return eu[keep], ev[keep]
+
+
+@njit(cache=True, inline="always")
+def _best_again(x, pool, row_start, row_len, dead, cost, eu, ev, best, best_to):
+    """x's cheapest edge from the costs kept per edge; x's row loses its dead edges."""
+    bx, bt = np.inf, -1
+    n = 0
+    for i in range(row_len[x]):
+        e = pool[row_start[x] + i]
+        if dead[e]:
+            continue
+        pool[row_start[x] + n] = e
+        n += 1
+        if cost[e] < bx:
+            bx, bt = cost[e], (ev[e] if eu[e] == x else eu[e])
+    row_len[x] = n
+    best[x], best_to[x] = bx, bt
+
+
+@njit(cache=True)
+def _compacted(pool, row_start, row_len, nodes, group):
+    """The rows of the groups among `nodes` moved to the front of `pool`, in the order they lie in it
+    (each moves down, so none overwrites a row not yet moved); returns the end of the last."""
+    roots = np.array([v for v in nodes if group[v] == v])
+    end = 0
+    for v in roots[np.argsort(row_start[roots])]:
+        pool[end : end + row_len[v]] = pool[row_start[v] : row_start[v] + row_len[v]].copy()
+        row_start[v] = end
+        end += row_len[v]
+    return end
+
+
+@njit(cache=True)
+def _merge(sums, eu, ev, n_groups, reg_covar):
+    """Merges the nodes (rows of `sums`, added up in place) along the edges (eu, ev; changed) until
+    `n_groups` are left or no edge is; returns each node's group (the node that holds its sums)."""
+    m, n_edges = sums.shape[0], eu.shape[0]
+    ll = np.empty(m)
+    for v in range(m):
+        ll[v] = _group(sums, v, reg_covar)
+    cost = np.empty(n_edges)
+    dead = np.zeros(n_edges, dtype=np.bool_)
+    best = np.full(m, np.inf)
+    best_to = np.full(m, -1, dtype=np.int64)
+    row_len = np.zeros(m, dtype=np.int64)
+    for e in range(n_edges):
+        a, b = eu[e], ev[e]
+        c = ll[a] + ll[b] - _merged(sums, a, b, reg_covar)
+        cost[e] = c
+        row_len[a] += 1
+        row_len[b] += 1
+        if c < best[a]:
+            best[a], best_to[a] = c, b
+        if c < best[b]:
+            best[b], best_to[b] = c, a
+    # Each node's row of edge numbers in one pool; a merged group's row is written at its end.
+    row_start = np.empty(m, dtype=np.int64)
+    end = 0
+    for v in range(m):
+        row_start[v] = end
+        end += row_len[v]
+        row_len[v] = 0
+    pool = np.empty(8 * n_edges + 16, dtype=np.int32)  # rows written after merges go on at the end
+    for e in range(n_edges):
+        for a in (eu[e], ev[e]):
+            pool[row_start[a] + row_len[a]] = e
+            row_len[a] += 1
+    group = np.arange(m)
+    mark = np.full(m, -1, dtype=np.int64)
+    live = np.arange(m)
+    n_live, count, stamp = m, m, 0
+    pairs = np.empty(m, dtype=np.int64)
+    pair_cost = np.empty(m)
+    while count > n_groups:
+        n_pairs, kept = 0, 0
+        for i in range(n_live):
+            x = live[i]
+            if group[x] != x:
+                continue
+            live[kept] = x
+            kept += 1
+            y = best_to[x]
+            if y >= 0 and best_to[y] == x and x < y:
+                pairs[n_pairs] = x
+                pair_cost[n_pairs] = best[x]
+                n_pairs += 1
+        n_live = kept
+        if n_pairs == 0:
+            break
+        take = min(n_pairs, max(1, int(_MERGE_SHARE * (count - n_groups))))
+        limit = np.inf if take == n_pairs else np.partition(pair_cost[:n_pairs], take - 1)[take - 1]
+        for i in range(n_pairs):
+            x = pairs[i]
+            p = best_to[x]
+            # a pair an earlier merge of this round changed waits for the next round
+            if count <= n_groups or pair_cost[i] > limit or best[x] != pair_cost[i] or p < 0 or best_to[p] != x:
+                continue
+            if end + row_len[x] + row_len[p] > pool.shape[0]:
+                end = _compacted(pool, row_start, row_len, live[:n_live], group)
+            for q in range(sums.shape[1]):
+                sums[x, q] += sums[p, q]
+            ll[x] = _group(sums, x, reg_covar)
+            group[p] = x
+            count -= 1
+            stamp += 1
+            mark[x] = stamp
+            mark[p] = stamp
+            start, n = end, 0
+            bx, bt = np.inf, -1
+            for u in (x, p):
+                for j in range(row_len[u]):
+                    e = pool[row_start[u] + j]
+                    if dead[e]:
+                        continue
+                    y = ev[e] if eu[e] == u else eu[e]
+                    if mark[y] == stamp:  # the edge x - p, or a second edge to y
+                        dead[e] = True
+                        continue
+                    mark[y] = stamp
+                    eu[e], ev[e] = x, y
+                    c = ll[x] + ll[y] - _merged(sums, x, y, reg_covar)
+                    cost[e] = c
+                    pool[start + n] = e
+                    n += 1
+                    if c < bx:
+                        bx, bt = c, y
+                    if c < best[y]:
+                        best[y], best_to[y] = c, x
+                    elif best_to[y] == x or best_to[y] == p:
+                        best_to[y] = -2  # its cheapest edge is found again once x's row is written
+            row_start[x], row_len[x] = start, n
+            end += n
+            best[x], best_to[x] = bx, bt
+            for j in range(n):
+                y = ev[pool[start + j]]
+                if best_to[y] == -2:
+                    _best_again(y, pool, row_start, row_len, dead, cost, eu, ev, best, best_to)
+    for v in range(m):
+        root = v
+        while group[root] != root:
+            root = group[root]
+        group[v] = root
+    return group
+
+
+@njit(cache=True)
+def merge_voxels(keys, sums, n_groups, reg_covar, voxel_size, near_range):
+    """The summed statistics (G, 10) of at most `n_groups` groups of the voxels (`keys`, `sums`
+    as voxels._voxel_statistics gives them; voxels beyond `near_range` of twice `voxel_size`),
+    fewer only when there are fewer voxels."""
+    m = keys.shape[0]
+    eu, ev = _voxel_edges(keys, voxel_size, near_range)
+    piece, n_pieces = _pieces(m, eu, ev)
+    level = 1
+    while n_pieces > _BRIDGED_PIECES * n_groups and level <= 2 * _KEY_BITS:
+        bu, bv = _bridges(keys, piece, n_pieces, level)
+        eu, ev = np.concatenate((eu, bu)), np.concatenate((ev, bv))
+        piece, n_pieces = _pieces(m, eu, ev)
+        level += 1
+    merged = sums.copy()
+    group = _merge(merged, eu, ev, n_groups, reg_covar)
+    roots = np.array([v for v in range(m) if group[v] == v])
+    return merged[roots]

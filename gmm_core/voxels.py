@@ -1,0 +1,224 @@
+"""A 3D scan's voxels: numbered by a hash table (one probe per point), and the sums of
+[1, x, x x^T] of each voxel's points, the statistics the voxel fit works on (voxel_merge,
+voxel_em).
+
+Voxel coordinates are packed into one int64 key; points beyond a near range of the sensor fall in
+voxels of twice the size (there the scan's rings lie farther apart than a voxel).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^19 voxels from
+# the origin: +-26 km at 5 cm), and above them one bit for the far voxels of twice the size.
+_KEY_BITS = 20
+_FAR_BIT = 3 * _KEY_BITS
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+_FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
+_FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
+# ... when more than this share of its slots is taken: at 1/4 instead of 1/2, numbering BALM #4's
+# 85,655 points (7,464 voxels) takes 0.52 instead of 0.77 ms, fewer probes run past their slot
+# (docs/BENCHMARKS.md, twentieth session).
+_TABLE_LOAD = 4
+
+
+@njit(cache=True, inline="always")
+def _voxel_key(points, i, d, size, far_squared):
+    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
+    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set.
+    `d`: the points' columns."""
+    r2 = 0.0
+    for a in range(d):
+        r2 += points[i, a] * points[i, a]
+    if not r2 < np.inf:  # NaN or inf in the point (em.checked_points' check, here at no extra pass)
+        raise ValueError("voxels: points contain NaN or inf")
+    far = r2 > far_squared
+    if far:
+        size = 2.0 * size
+    key = 0
+    for a in range(d):
+        c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
+        if c < 0 or c >= 2 * _KEY_OFFSET:
+            raise ValueError("voxels: a point lies more than 2^19 voxels from the origin")
+        key = (key << _KEY_BITS) + c
+    return key + (1 << _FAR_BIT) if far else key
+
+
+@njit(cache=True)
+def _hash_table(bits):
+    """An open-addressing table of 2^bits slots: rows (key, -1 where empty; the key's voxel
+    number), side by side so that a probe reads one cache line; and the shift of the hash."""
+    return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
+
+
+@njit(cache=True, inline="always")
+def _voxel_number(table, shift, key, n_voxels):
+    """The number of the voxel `key` (linear probing); a new key gets `n_voxels`."""
+    mask = table.shape[0] - 1
+    h = np.int64((np.uint64(key) * _FIBONACCI_HASH) >> shift)
+    while table[h, 0] != -1 and table[h, 0] != key:
+        h = (h + 1) & mask
+    if table[h, 0] == -1:
+        table[h, 0] = key
+        table[h, 1] = n_voxels
+    return table[h, 1]
+
+
+@njit(cache=True, inline="always")
+def _lookup(table, shift, key):
+    """The number of the voxel `key`, -1 where it is not in the table."""
+    mask = table.shape[0] - 1
+    h = np.int64((np.uint64(key) * _FIBONACCI_HASH) >> shift)
+    while table[h, 0] != -1:
+        if table[h, 0] == key:
+            return table[h, 1]
+        h = (h + 1) & mask
+    return -1
+
+
+@njit(cache=True)
+def _table_of(keys):
+    """A table of distinct `keys`, each numbered by its place in them, at 1 / 4 load; and its shift."""
+    bits = 4
+    while (1 << bits) < 4 * keys.shape[0]:
+        bits += 1
+    table, shift = _hash_table(bits)
+    for i in range(keys.shape[0]):
+        _voxel_number(table, shift, keys[i], i)
+    return table, shift
+
+
+@njit(cache=True)
+def _grown(table, n_voxels):
+    """`table` with room for twice `n_voxels` at 1 / _TABLE_LOAD: the table stays as small as the
+    voxels (a few hundred KB for a lidar scan's), not as the points, and so in cache."""
+    bits = 4
+    while (1 << bits) < 2 * _TABLE_LOAD * n_voxels:
+        bits += 1
+    grown, shift = _hash_table(bits)
+    for h in range(table.shape[0]):
+        if table[h, 0] != -1:
+            _voxel_number(grown, shift, table[h, 0], table[h, 1])
+    return grown, shift
+
+
+@njit(cache=True)
+def _numbered(keys):
+    """Each key's number among the distinct keys, in the order they first come (n,), and how many
+    distinct keys there are: one hash probe per key."""
+    numbers = np.empty(keys.shape[0], dtype=np.int64)
+    table, shift = _hash_table(_FIRST_TABLE_BITS)
+    i, count = 0, 0
+    while i < keys.shape[0]:
+        # The table grows here, between calls: an array assigned in a loop costs numba an atomic
+        # increment and decrement of its reference count per pass (docs/BENCHMARKS.md, twelfth
+        # session), so the loop over the keys does not assign it.
+        i, count = _number_until_full(keys, i, table, shift, numbers, count)
+        if i < keys.shape[0]:
+            table, shift = _grown(table, count)
+    return numbers, count
+
+
+@njit(cache=True)
+def _number_until_full(keys, i, table, shift, numbers, count):
+    """_numbered's numbers of keys i, i + 1, ... until the last key or a table over 1 / _TABLE_LOAD full;
+    returns the next key and the count so far."""
+    while i < keys.shape[0]:
+        numbers[i] = _voxel_number(table, shift, keys[i], count)
+        if numbers[i] == count:
+            count += 1
+        i += 1
+        if _TABLE_LOAD * count > table.shape[0]:
+            break
+    return i, count
+
+
+@njit(cache=True)
+def count_voxels(points, size):
+    """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them)."""
+    keys = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf)
+    return _numbered(keys)[1]
+
+
+@njit(cache=True)
+def _voxel_statistics(points, voxel_size, shift, near_range):
+    """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
+    `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
+    its key (M,), voxels in the order of their first point: one hash probe per point.
+    The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
+    precise."""
+    # The dimension as a constant in each branch: the loops over the axes compile unrolled, 1.5x
+    # faster than with the columns read from the array (docs/BENCHMARKS.md, tenth session).
+    if points.shape[1] == 3:
+        return _voxel_sums(points, 3, voxel_size, shift, near_range)
+    return _voxel_sums(points, 2, voxel_size, shift, near_range)
+
+
+@njit(cache=True, inline="always")
+def _voxel_sums(points, d, voxel_size, shift, near_range):
+    """_voxel_statistics of (n, d) points."""
+    far_squared = near_range * near_range
+    n = points.shape[0]
+    point_keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        point_keys[i] = _voxel_key(points, i, d, voxel_size, far_squared)
+    voxel_of, n_voxels = _numbered(point_keys)
+    sums = np.zeros((n_voxels, 1 + d + d * (d + 1) // 2))
+    keys = np.empty(n_voxels, dtype=np.int64)
+    x = np.empty(d)
+    for i in range(n):
+        v = voxel_of[i]
+        keys[v] = point_keys[i]
+        for a in range(d):
+            x[a] = points[i, a] - shift[a]
+        sums[v, 0] += 1.0
+        j = 1 + d
+        for a in range(d):
+            sums[v, 1 + a] += x[a]
+            for b in range(a, d):
+                sums[v, j] += x[a] * x[b]
+                j += 1
+    return sums, keys
+
+
+@njit(cache=True)
+def _count_cells(keys, d, ratio):
+    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes; `ratio`
+    even where far voxels of twice the size are among them) hold one of the voxels `keys`:
+    count_voxels(points, ratio * voxel_size) from the voxels, not the points
+    (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
+    of two, as 4 and 0.25 m)."""
+    mask = (1 << _KEY_BITS) - 1
+    cells = np.empty(keys.shape[0], dtype=np.int64)
+    for v in range(keys.shape[0]):
+        per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
+        cell = 0
+        for a in range(d):
+            c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask
+            cell = (cell << _KEY_BITS) + (c - _KEY_OFFSET) // per_cell + _KEY_OFFSET
+        cells[v] = cell
+    return _numbered(cells)[1]
+
+
+@njit(cache=True)
+def _means_and_scatter(sums):
+    """Each group's mean and its scatter (covariance of its points, upper triangle) from its sums."""
+    m, f = sums.shape
+    d = 3 if f == 10 else 2
+    means = np.empty((m, d))
+    scatter = np.empty((m, d * (d + 1) // 2))
+    for v in range(m):
+        n = sums[v, 0]
+        for a in range(d):
+            means[v, a] = sums[v, 1 + a] / n
+        j = 1 + d
+        for a in range(d):
+            for b in range(a, d):
+                s = sums[v, j] / n - means[v, a] * means[v, b]
+                scatter[v, j - 1 - d] = max(s, 0.0) if a == b else s
+                j += 1
+    return means, scatter

@@ -1,0 +1,143 @@
+"""The bottom-up merge of a scan's voxels (gmm_core.voxel_merge) against plain references: the
+neighbours by brute force, the pieces by scipy, the rounds of merges recomputed from scratch with
+numpy's determinants."""
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from gmm_core.voxel_merge import _MERGE_SHARE, _merge, _pieces, _voxel_edges, merge_voxels
+from gmm_core.voxels import _FAR_BIT, _KEY_BITS, _KEY_OFFSET, _voxel_statistics
+
+
+def voxel_coordinates(keys):
+    """(x, y, z) of each key in its own voxel size, and whether it is a far voxel."""
+    mask = (1 << _KEY_BITS) - 1
+    coords = np.column_stack([(keys >> (_KEY_BITS * (2 - a))) & mask for a in range(3)]) - _KEY_OFFSET
+    return coords, (keys >> _FAR_BIT).astype(bool)
+
+
+def test_voxel_edges_are_the_neighbouring_voxels():
+    # Near voxels (0.5 m) within 4 m of the origin, far ones (1 m) beyond: neighbours among each
+    # size are the 26 around a voxel; a near voxel within 2 sqrt(3) voxels of the near range also
+    # touches the far voxels that hold one of its 26 neighbours' cells.
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-7, 7, (700, 3))
+    size, near = 0.5, 4.0
+    _, keys = _voxel_statistics(points, size, np.zeros(3), near)
+    eu, ev = _voxel_edges(keys, size, near)
+    found = {tuple(sorted(pair)) for pair in zip(eu.tolist(), ev.tolist())}
+    assert len(found) == len(eu)  # each pair once
+    coords, far = voxel_coordinates(keys)
+    expected = set()
+    for i in range(len(keys)):
+        for j in range(i + 1, len(keys)):
+            if far[i] == far[j]:
+                if np.abs(coords[i] - coords[j]).max() == 1:
+                    expected.add((i, j))
+                continue
+            n, f = (i, j) if far[j] else (j, i)
+            centre = np.linalg.norm((coords[n] + 0.5) * size)
+            touches = ((2 * coords[f] - 1 <= coords[n]) & (coords[n] <= 2 * coords[f] + 2)).all()
+            if touches and centre >= near - 2 * np.sqrt(3) * size:
+                expected.add((min(i, j), max(i, j)))
+    assert found == expected and far.any() and (~far).any()
+
+
+def test_pieces_are_scipys_connected_components():
+    rng = np.random.default_rng(5)
+    m = 300
+    eu, ev = rng.integers(0, m, (2, 200)).astype(np.int32)
+    piece, count = _pieces(m, eu, ev)
+    n_expected, expected = connected_components(coo_matrix((np.ones(len(eu)), (eu, ev)), shape=(m, m)), directed=False)
+    assert count == n_expected
+    # the same partition, numbered in the order of each piece's first node
+    assert (piece[np.unique(piece, return_index=True)[1]] == np.arange(count)).all()
+    assert (np.unique(np.column_stack([piece, expected]), axis=0).shape[0]) == count
+
+
+def log_likelihood(s, reg):
+    """n log n - n/2 log det(Sigma + reg I) of a group's sums [n, sum x, upper sum x x^T]."""
+    n, mean = s[0], s[1:4] / s[0]
+    second = np.zeros((3, 3))
+    second[np.triu_indices(3)] = s[4:]
+    second = second + np.triu(second, 1).T
+    cov = second / n - np.outer(mean, mean) + reg * np.eye(3)
+    return n * np.log(n) - 0.5 * n * np.log(np.linalg.det(cov))
+
+
+def reference_merge(sums, edges, n_groups, reg):
+    """_merge's rounds with every cost and every cheapest neighbour recomputed from the groups."""
+    groups = {v: sums[v].copy() for v in range(len(sums))}
+    owner = np.arange(len(sums))
+
+    def cost(a, b):
+        return (
+            log_likelihood(groups[a], reg) + log_likelihood(groups[b], reg) - log_likelihood(groups[a] + groups[b], reg)
+        )
+
+    def cheapest(a):
+        others = {owner[v] for u, v in edges if owner[u] == a} | {owner[u] for u, v in edges if owner[v] == a}
+        return min(((cost(a, b), b) for b in others - {a}), default=(np.inf, -1))
+
+    while len(groups) > n_groups:
+        best = {a: cheapest(a) for a in sorted(groups)}
+        pairs = [(best[a][0], a, b) for a, (c, b) in best.items() if b > a and best[b][1] == a]
+        if not pairs:
+            break
+        take = min(len(pairs), max(1, int(_MERGE_SHARE * (len(groups) - n_groups))))
+        limit = np.inf if take == len(pairs) else sorted(c for c, _, _ in pairs)[take - 1]
+        for c, a, b in pairs:
+            if len(groups) <= n_groups or c > limit or cheapest(a) != (c, b) or cheapest(b)[1] != a:
+                continue
+            groups[a] = groups[a] + groups.pop(b)
+            owner[owner == b] = a
+    return np.array([groups[a] for a in sorted(groups)])
+
+
+def test_merge_is_the_plain_rounds_of_mutual_cheapest_pairs():
+    rng = np.random.default_rng(11)
+    for trial in range(4):
+        # A bent sheet and some clutter, in voxels of 0.2 m: groups of a few voxels each.
+        u, w = rng.uniform(0, 2, (2, 600))
+        sheet = np.column_stack([u, w, 0.3 * np.sin(3 * u) + rng.normal(0, 0.01, 600)])
+        points = np.concatenate([sheet, rng.uniform(0, 2, (60, 3))])
+        sums, keys = _voxel_statistics(points, 0.2, points[0].copy(), np.inf)
+        eu, ev = _voxel_edges(keys, 0.2, np.inf)
+        n_groups = [5, 20, 40, 80][trial]
+        expected = reference_merge(sums, list(zip(eu.tolist(), ev.tolist())), n_groups, 1e-4)
+        merged = sums.copy()
+        group = _merge(merged, eu.copy(), ev.copy(), n_groups, 1e-4)
+        roots = np.flatnonzero(group == np.arange(len(group)))
+        assert np.allclose(merged[roots], expected, rtol=1e-10, atol=1e-10)
+        assert (group[roots] == roots).all() and (group[group] == group).all()
+
+
+def test_two_planes_meeting_at_a_corner_become_two_groups():
+    # The classification likelihood merges the halves of a flat patch almost for free and pays
+    # for the thickness a merge across the corner adds: K = 2 gives the two planes.
+    rng = np.random.default_rng(2)
+    floor = np.column_stack([rng.uniform(0, 3, 4000), rng.uniform(0, 3, 4000), rng.normal(0, 0.01, 4000)])
+    wall = floor[:, [2, 1, 0]]
+    points = np.concatenate([floor, wall])
+    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), np.inf)
+    groups = merge_voxels(keys, sums, 2, 1e-4, 0.25, np.inf)
+    assert len(groups) == 2 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
+    for g in groups:
+        mean = g[1:4] / g[0]
+        assert g[0] > 3500 and (abs(mean[0]) < 0.2 or abs(mean[2]) < 0.2)  # centred on one plane
+
+
+def test_sparse_scan_is_bridged_to_k_groups():
+    # Rings 1 m apart on a floor (voxels 0.25 m): the neighbours leave one piece a ring, far more
+    # than K; edges between pieces in neighbouring cells let the merge go on to K groups.
+    rng = np.random.default_rng(9)
+    radii = np.repeat(np.arange(2.0, 30.0, 1.0), 150)
+    angle = rng.uniform(0, 2 * np.pi, len(radii))
+    points = np.column_stack([radii * np.cos(angle), radii * np.sin(angle), rng.normal(-1, 0.01, len(radii))])
+    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), 12.0)
+    eu, ev = _voxel_edges(keys, 0.25, 12.0)
+    assert _pieces(len(keys), eu, ev)[1] > 200
+    groups = merge_voxels(keys, sums, 20, 1e-4, 0.25, 12.0)
+    assert len(groups) == 20 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
+    assert len(merge_voxels(keys[:5], sums[:5], 20, 1e-4, 0.25, 12.0)) == 5  # fewer voxels than K

@@ -1,0 +1,53 @@
+"""A scan's voxels (gmm_core.voxels) against numpy: the voxel sums, the voxels counted, the
+cells counted from the voxels."""
+
+import numpy as np
+import pytest
+
+from gmm_core import em
+from gmm_core.voxels import _count_cells, _voxel_statistics, count_voxels
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("near_range", [np.inf, 2.5])
+def test_voxel_statistics_match_numpy(dim, near_range):
+    # Beyond near_range of the origin, voxels of twice the size (a voxel of each kind per key).
+    rng = np.random.default_rng(0)
+    points = np.repeat(rng.uniform(-3, 3, (400, dim)), rng.integers(1, 5, 400), axis=0)  # runs
+    points = np.concatenate([points, rng.uniform(-3, 3, (300, dim))])
+    shift = rng.uniform(-1, 1, dim)
+    sums, keys = _voxel_statistics(points, 0.7, shift, near_range)
+    far = np.linalg.norm(points, axis=1) > near_range
+    assert 0 < far.sum() < len(points) or near_range == np.inf
+    voxel = np.column_stack([np.floor(points / np.where(far, 1.4, 0.7)[:, None]), far])
+    cells, first, inverse = np.unique(voxel, axis=0, return_index=True, return_inverse=True)
+    expected = np.zeros((len(cells), sums.shape[1]))
+    np.add.at(expected, inverse.ravel(), em._features(points - shift))  # voxels of x, sums of x - shift
+    expected = expected[np.argsort(first)]  # voxels in the order of their first point
+    assert np.allclose(sums, expected, rtol=1e-12, atol=1e-9)
+    assert len(np.unique(keys)) == len(keys) == len(cells)
+    if near_range == np.inf:
+        assert count_voxels(points, 0.7) == len(cells)
+    assert count_voxels(points[:0], 0.7) == 0
+    # Thousands of voxels: the hash table grows from 1024 slots several times on the way.
+    spread = rng.uniform(-50, 50, (6000, dim))
+    assert count_voxels(spread, 0.05) == len(np.unique(np.floor(spread / 0.05), axis=0))
+    spread_sums = _voxel_statistics(spread, 0.05, np.zeros(dim), near_range)[0]
+    assert np.allclose(spread_sums.sum(axis=0), em._features(spread).sum(axis=0))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_cells_counted_from_the_voxels_are_count_voxels_of_the_points(dim):
+    # Cells of 4 voxels of 0.25 m (and 2 of 0.5 m): the occupied 1 m cells of the points, on both
+    # sides of the origin (floor division of negative voxel numbers) and on cell boundaries.
+    rng = np.random.default_rng(7)
+    points = np.concatenate([rng.uniform(-30, 30, (5000, dim)), rng.integers(-20, 20, (200, dim)).astype(float)])
+    for voxel_size, ratio, near_range in (
+        (0.25, 4, np.inf),
+        (0.5, 2, np.inf),
+        (0.25, 1, np.inf),
+        (0.25, 4, 12.0),
+        (0.5, 2, 12.0),
+    ):
+        _, keys = _voxel_statistics(points, voxel_size, np.zeros(dim), near_range)
+        assert _count_cells(keys, dim, ratio) == count_voxels(points, voxel_size * ratio)
