@@ -18,9 +18,13 @@ segmentation.
 The merges run in rounds: in each, the groups that are each other's cheapest neighbour (mutual
 pairs, which a greedy merge order would merge before anything they touch) are merged, the cheapest
 first, at most _MERGE_SHARE of the merges still to make; costs are kept per edge and updated for
-the edges of a merged group only. Where the neighbours run out before K groups are left (sparse
-scans: rings farther apart than a voxel), groups in the same or neighbouring cells of 2, 4, 8 ...
-voxels become neighbours and merging goes on.
+the edges of a merged group only. Where the voxels that touch leave more separate pieces than
+K / 4 (sparse scans: rings farther apart than a voxel), pieces with voxels in the same or
+neighbouring cells of 2, 4, 8 ... voxels are joined by an edge before the merging starts.
+
+The likelihood counts points, not surface: along a lidar ring a group stays thin, so on a curved
+wall the cheapest merges can follow the rings, and a ring's arc spans the chord of the tunnel
+(the mine sim's region, docs/BENCHMARKS.md, twenty-second session).
 """
 
 from __future__ import annotations
@@ -146,18 +150,12 @@ def _pieces(m, eu, ev):
     """The connected pieces of the graph of m nodes and edges (eu, ev): each node's piece, 0 .. P - 1, and P."""
     root = np.arange(m)
     for e in range(eu.shape[0]):
-        a, b = eu[e], ev[e]
-        while root[a] != a:
-            root[a] = root[root[a]]
-            a = root[a]
-        while root[b] != b:
-            root[b] = root[root[b]]
-            b = root[b]
+        a, b = _root(root, eu[e]), _root(root, ev[e])
         if a != b:
-            root[max(a, b)] = min(a, b)
+            root[max(a, b)] = min(a, b)  # a piece's root is its first node
     piece = np.empty(m, dtype=np.int64)
     count = 0
-    for v in range(m):  # a root comes before the nodes that point to it
+    for v in range(m):
         if root[v] == v:
             piece[v] = count
             count += 1
@@ -168,7 +166,9 @@ def _pieces(m, eu, ev):
 
 @njit(cache=True, inline="always")
 def _root(root, v):
+    """The root of v's tree, halving the path on the way (union-find)."""
     while root[v] != v:
+        root[v] = root[root[v]]
         v = root[v]
     return v
 

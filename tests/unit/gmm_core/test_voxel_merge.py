@@ -141,3 +141,20 @@ def test_sparse_scan_is_bridged_to_k_groups():
     groups = merge_voxels(keys, sums, 20, 1e-4, 0.25, 12.0)
     assert len(groups) == 20 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
     assert len(merge_voxels(keys[:5], sums[:5], 20, 1e-4, 0.25, 12.0)) == 5  # fewer voxels than K
+
+
+def test_merge_of_a_star_compacts_its_rows_and_stays_the_plain_rounds():
+    # A hub with 80 leaves merges one leaf a round, each time writing the hub's row anew: 60 rows
+    # of up to 80 edges overflow the pool of 8 edges per edge, which is compacted in place; which
+    # leaves the hub takes depends on every cost read from the rows.
+    from gmm_core import em
+
+    rng = np.random.default_rng(4)
+    sums = np.array([em._features(rng.normal(0, 1, (5, 3)) + rng.uniform(-3, 3, 3)).sum(axis=0) for _ in range(81)])
+    eu = np.zeros(80, dtype=np.int32)
+    ev = np.arange(1, 81, dtype=np.int32)
+    expected = reference_merge(sums, list(zip(eu.tolist(), ev.tolist())), 20, 1e-4)
+    merged = sums.copy()
+    group = _merge(merged, eu, ev, 20, 1e-4)
+    roots = np.flatnonzero(group == np.arange(81))
+    assert len(roots) == 20 and np.allclose(merged[roots], expected, rtol=1e-10)
