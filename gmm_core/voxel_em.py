@@ -5,7 +5,8 @@ Three steps:
 1. The points' voxels of size `voxel_size` are numbered and [1, x, x x^T] is summed per voxel
    (voxels.py).
 2. The voxels are merged bottom-up into K groups, the merge that costs the classification
-   log-likelihood least first (voxel_merge.py); the groups' summed statistics give the
+   log-likelihood least first (voxel_merge.py; the costs see a lidar's footprint across its
+   rings, rings.py); the groups' summed statistics give the
    parameters (M-step, Sec. III-A). This alone ends above scikit-learn's converged EM with the
    same K on dense scans (docs/BENCHMARKS.md, twenty-second session).
 3. Optionally (`max_iter` > 0), truncated EM on the voxels as weighted points (Verbeek, Nunnink &
@@ -27,6 +28,7 @@ from numba import njit
 
 from gmm_core import em
 from gmm_core.mixture import Mixture
+from gmm_core.rings import ring_spacing, with_footprint
 from gmm_core.voxel_merge import merge_voxels
 from gmm_core.voxels import _count_cells, _means_and_scatter, _voxel_statistics, count_voxels
 
@@ -342,6 +344,7 @@ def fit_mixture_voxels(
     tol: float = 1e-3,
     overrelaxation: float = _OVERRELAXATION,
     search_every: int = 0,
+    footprint: bool = True,
 ) -> Mixture:
     """A mixture of at most `n_components` Gaussians for (n, 3) points from the statistics of
     voxels of size `voxel_size` (m): the voxels merged bottom-up into that many groups
@@ -355,6 +358,8 @@ def fit_mixture_voxels(
     counted from the voxels when it is a whole number of voxels. Points farther than `near_range`
     (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
     size: there the scan's rings lie farther apart than a voxel, so a voxel holds few points.
+    With `footprint`, the merge costs see each point's footprint across the rings of a spinning
+    lidar (read off the points' elevations in their frame, rings.py; none where there are none).
 
     Deterministic: no seed. Fewer components come back only when there are fewer voxels than
     asked (voxels are never cut: the voxels must be much smaller than the components).
@@ -376,7 +381,8 @@ def fit_mixture_voxels(
             round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9 and (round(ratio) % 2 == 0 or near_range == np.inf)
         )
         k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
-    group_sums = merge_voxels(keys, sums, k, float(reg_covar), float(voxel_size), float(near_range))
+    costed = with_footprint(sums, -shift, ring_spacing(points)) if footprint else sums.copy()
+    group_sums = merge_voxels(keys, sums, costed, k, float(reg_covar), float(voxel_size), float(near_range))
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)

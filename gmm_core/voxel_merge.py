@@ -23,8 +23,9 @@ K / 4 (sparse scans: rings farther apart than a voxel), pieces with voxels in th
 neighbouring cells of 2, 4, 8 ... voxels are joined by an edge before the merging starts.
 
 The likelihood counts points, not surface: along a lidar ring a group stays thin, so on a curved
-wall the cheapest merges can follow the rings, and a ring's arc spans the chord of the tunnel
-(the mine sim's region, docs/BENCHMARKS.md, twenty-second session).
+wall the cheapest merges would follow the rings, and a ring's arc span the chord of a tunnel. The
+costs are therefore taken on the voxel sums with their points' footprint across the rings added
+(rings.py); the groups' statistics are the points' own.
 """
 
 from __future__ import annotations
@@ -384,10 +385,11 @@ def _merge(sums, eu, ev, n_groups, reg_covar):
 
 
 @njit(cache=True)
-def merge_voxels(keys, sums, n_groups, reg_covar, voxel_size, near_range):
+def merge_voxels(keys, sums, costed, n_groups, reg_covar, voxel_size, near_range):
     """The summed statistics (G, 10) of at most `n_groups` groups of the voxels (`keys`, `sums`
     as voxels._voxel_statistics gives them; voxels beyond `near_range` of twice `voxel_size`),
-    fewer only when there are fewer voxels."""
+    fewer only when there are fewer voxels. The merge costs are those of `costed` (the sums with
+    their footprint across a lidar's rings, rings.py; changed), the groups' statistics `sums`'."""
     m = keys.shape[0]
     eu, ev = _voxel_edges(keys, voxel_size, near_range)
     piece, n_pieces = _pieces(m, eu, ev)
@@ -397,7 +399,15 @@ def merge_voxels(keys, sums, n_groups, reg_covar, voxel_size, near_range):
         eu, ev = np.concatenate((eu, bu)), np.concatenate((ev, bv))
         piece, n_pieces = _pieces(m, eu, ev)
         level += 1
-    merged = sums.copy()
-    group = _merge(merged, eu, ev, n_groups, reg_covar)
-    roots = np.array([v for v in range(m) if group[v] == v])
-    return merged[roots]
+    group = _merge(costed, eu, ev, n_groups, reg_covar)
+    index = np.full(m, -1, dtype=np.int64)
+    count = 0
+    for v in range(m):
+        if group[v] == v:
+            index[v] = count
+            count += 1
+    grouped = np.zeros((count, sums.shape[1]))
+    for v in range(m):
+        for q in range(sums.shape[1]):
+            grouped[index[group[v]], q] += sums[v, q]
+    return grouped

@@ -121,7 +121,7 @@ def test_two_planes_meeting_at_a_corner_become_two_groups():
     wall = floor[:, [2, 1, 0]]
     points = np.concatenate([floor, wall])
     sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), np.inf)
-    groups = merge_voxels(keys, sums, 2, 1e-4, 0.25, np.inf)
+    groups = merge_voxels(keys, sums, sums.copy(), 2, 1e-4, 0.25, np.inf)
     assert len(groups) == 2 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
     for g in groups:
         mean = g[1:4] / g[0]
@@ -138,9 +138,9 @@ def test_sparse_scan_is_bridged_to_k_groups():
     sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), 12.0)
     eu, ev = _voxel_edges(keys, 0.25, 12.0)
     assert _pieces(len(keys), eu, ev)[1] > 200
-    groups = merge_voxels(keys, sums, 20, 1e-4, 0.25, 12.0)
+    groups = merge_voxels(keys, sums, sums.copy(), 20, 1e-4, 0.25, 12.0)
     assert len(groups) == 20 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
-    assert len(merge_voxels(keys[:5], sums[:5], 20, 1e-4, 0.25, 12.0)) == 5  # fewer voxels than K
+    assert len(merge_voxels(keys[:5], sums[:5], sums[:5].copy(), 20, 1e-4, 0.25, 12.0)) == 5  # fewer voxels than K
 
 
 def test_merge_of_a_star_compacts_its_rows_and_stays_the_plain_rounds():
