@@ -20,7 +20,8 @@ pairs, which a greedy merge order would merge before anything they touch) are me
 first, at most _MERGE_SHARE of the merges still to make; costs are kept per edge and updated for
 the edges of a merged group only. Where the voxels that touch leave more separate pieces than
 K / 4 (sparse scans: rings farther apart than a voxel), pieces with voxels in the same or
-neighbouring cells of 2, 4, 8 ... voxels are joined by an edge before the merging starts.
+neighbouring cells of 2, 4 and 8 voxels, and of more while the pieces outnumber K, are joined by an
+edge before the merging starts.
 
 The likelihood counts points, not surface: along a lidar ring a group stays thin, so on a curved
 wall the cheapest merges would follow the rings, and a ring's arc span the chord of a tunnel. The
@@ -44,6 +45,12 @@ _MERGE_SHARE = 0.25
 # merging: the cheapest merges across a gap are then taken in their turn, not after each piece
 # has been merged into one group.
 _BRIDGED_PIECES = 0.25
+# ... in cells of at most 2^this near voxels (2 m at 0.25 m): pieces farther apart are separate
+# things, bridged only while they outnumber K. A bridge between two single points is cheap however
+# long it is (two points make a line of no width), so a bridge between far pieces could join two
+# objects (5 blobs 11-40 m apart, each with a few stray points: two joined at level 8;
+# test_voxel_em's well separated clusters).
+_BRIDGED_LEVELS = 3
 _MASK = (1 << _KEY_BITS) - 1
 # The key's change to the forward half of a voxel's 18 neighbours (each pair of voxels once): those
 # sharing a face or an edge. The 8 that share a corner only add a third of the edges and change
@@ -406,7 +413,9 @@ def merge_voxels(keys, sums, costed, n_groups, reg_covar, voxel_size, near_range
     eu, ev = _voxel_edges(keys, voxel_size, near_range)
     piece, n_pieces = _pieces(m, eu, ev)
     level = 1
-    while n_pieces > _BRIDGED_PIECES * n_groups and level <= 2 * _KEY_BITS:
+    while level <= 2 * _KEY_BITS and (
+        n_pieces > n_groups or (n_pieces > _BRIDGED_PIECES * n_groups and level <= _BRIDGED_LEVELS)
+    ):
         bu, bv = _bridges(keys, piece, n_pieces, level)
         eu, ev = np.concatenate((eu, bu)), np.concatenate((ev, bv))
         piece, n_pieces = _pieces(m, eu, ev)
