@@ -4,18 +4,18 @@ across them.
 A spinning lidar samples a surface densely along each ring (azimuth steps of 0.1-0.4 deg) and
 sparsely across them (1-3 deg): at range r a point stands for a strip about r * dphi wide between
 its ring and the next. The voxel merge counts points (voxel_merge.py), so a group along one ring
-stays thin across it and is cheap to extend: on a curved wall the cheapest merges follow the rings
-and a ring's arc spans the chord through free space. Adding to each voxel the variance of its
-points' footprint across the rings, (r dphi)^2 / 12 along the elevation direction (a uniform
-strip), lets the costs see surface instead, and groups span the rings: the rays traced to their
-samples then fill the free space between the rings' cones, which thin groups left barely seen
-(p just under 0.5). The mine sim's region at 0.1 m went from AUROC 0.980 to 0.993 (docs/BENCHMARKS.md,
-twenty-third session). The footprint enters the merge costs only; the components are the points'
-own moments.
+stays thin across it and is cheap to extend along the ring: many components are ring segments, and
+the rays traced to their samples run along the rings' cones, leaving the free space between them
+barely seen (a few misses: p just under 0.5). Adding to each voxel the variance of its points'
+footprint across the rings, (r dphi)^2 / 12 along the elevation direction (a uniform strip), lets
+the costs see surface instead, and groups span the rings. The mine sim's region at 0.1 m went from
+AUROC 0.980 to 0.993 (docs/BENCHMARKS.md, twenty-third session). The footprint enters the merge
+costs only; the components are the points' own moments (in them too, it cost BALM 0.6 nats a point).
 
-The rings are the narrow clusters of the points' elevation angles in the sensor's frame, their
-spacing the median gap between neighbouring ones; scans from sensors without rings (a tilting 2D
-scanner, a depth camera, a lidar tilted in the scan's frame) show none and get no footprint.
+The rings are the clusters of the points' elevation angles in the sensor's frame that are narrower
+than their spacing, the spacing the median gap between neighbouring ones; scans from sensors
+without rings (a tilting 2D scanner, a depth camera, a lidar tilted in the scan's frame) show none
+and get no footprint.
 """
 
 from __future__ import annotations

@@ -23,10 +23,9 @@ K / 4 (sparse scans: rings farther apart than a voxel), pieces with voxels in th
 neighbouring cells of 2, 4 and 8 voxels, and of more while the pieces outnumber K, are joined by an
 edge before the merging starts.
 
-The likelihood counts points, not surface: along a lidar ring a group stays thin, so on a curved
-wall the cheapest merges would follow the rings, and a ring's arc span the chord of a tunnel. The
-costs are therefore taken on the voxel sums with their points' footprint across the rings added
-(rings.py); the groups' statistics are the points' own.
+The likelihood counts points, not surface: along a lidar ring a group stays thin, so the cheapest
+merges would follow the rings. The costs are therefore taken on the voxel sums with their points'
+footprint across the rings added (rings.py); the groups' statistics are the points' own.
 """
 
 from __future__ import annotations
