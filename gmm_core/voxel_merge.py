@@ -51,36 +51,31 @@ _BRIDGED_PIECES = 0.25
 # test_voxel_em's well separated clusters).
 _BRIDGED_LEVELS = 3
 _MASK = (1 << _KEY_BITS) - 1
-# The key's change to the forward half of a voxel's 18 neighbours (each pair of voxels once): those
-# sharing a face or an edge. The 8 that share a corner only add a quarter of the edges (BALM #4:
-# 34,344 against 26,785) and change the likelihood by less than 0.01 nats a point
-# (docs/BENCHMARKS.md, twenty-third session).
-_FORWARD = np.array(
-    [
-        (dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz
-        for dx in (-1, 0, 1)
-        for dy in (-1, 0, 1)
-        for dz in (-1, 0, 1)
-        if (dx, dy, dz) > (0, 0, 0) and abs(dx) + abs(dy) + abs(dz) < 3
-    ],
-    dtype=np.int64,
+
+
+def _key_changes(offsets) -> np.ndarray:
+    """What adding each (dx, dy, dz) to a voxel's (or cell's) coordinates adds to its key: the
+    neighbours' keys without decoding (no coordinate is near the ends of its _KEY_BITS)."""
+    return np.array([(dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz for dx, dy, dz in offsets], dtype=np.int64)
+
+
+_CUBE = [(dx, dy, dz) for dx in range(-2, 3) for dy in range(-2, 3) for dz in range(-2, 3)]  # lexicographic
+# The forward half of a voxel's 18 neighbours (each pair of voxels once): those sharing a face or
+# an edge. The 8 that share a corner only add a quarter of the edges (BALM #4: 34,344 against
+# 26,785) and change the likelihood by less than 0.01 nats a point (docs/BENCHMARKS.md,
+# twenty-third session).
+_FORWARD = _key_changes(o for o in _CUBE if o > (0, 0, 0) and max(map(abs, o)) == 1 and sum(map(abs, o)) < 3)
+# ... and the voxels within two that share no face or edge, the nearest first: a voxel with none of
+# its 18 neighbours (a stray return, a lone point of a far ring) is joined to the nearest of them,
+# else it ends a component of its own (BALM #4: 38 of 1077 were single points).
+_NEAREST = _key_changes(
+    sorted(
+        (o for o in _CUBE if max(map(abs, o)) == 2 or sum(map(abs, o)) == 3),
+        key=lambda o: (o[0] ** 2 + o[1] ** 2 + o[2] ** 2, o),
+    )
 )
-# ... and to the voxels within two of it that share no face or edge with it, the nearest first: a
-# voxel with none of its 18 neighbours (a stray return, a lone point of a far ring) is joined to the
-# nearest of them, else it ends a component of its own (BALM #4: 38 of 1077 were single points).
-_NEAREST = np.array(
-    [
-        (dx << (2 * _KEY_BITS)) + (dy << _KEY_BITS) + dz
-        for _, dx, dy, dz in sorted(
-            (dx * dx + dy * dy + dz * dz, dx, dy, dz)
-            for dx in range(-2, 3)
-            for dy in range(-2, 3)
-            for dz in range(-2, 3)
-            if max(abs(dx), abs(dy), abs(dz)) == 2 or abs(dx) + abs(dy) + abs(dz) == 3
-        )
-    ],
-    dtype=np.int64,
-)
+# A cell itself and the forward half of its 26 neighbours (_bridges).
+_CELL_FORWARD = _key_changes(o for o in _CUBE if o >= (0, 0, 0) and max(map(abs, o)) <= 1)
 
 
 @njit(cache=True, inline="always")
@@ -251,16 +246,12 @@ def _bridges(keys, piece, n_pieces, level):
         members[filled[cell_of[voxel_of[i]]]] = voxel_of[i]
         filled[cell_of[voxel_of[i]]] += 1
     table, shift = _table_of(first_key)
-    neighbour = np.full((n_cells, 14), -1, dtype=np.int64)  # the cell itself and the forward half of the 26
+    neighbour = np.full((n_cells, _CELL_FORWARD.shape[0]), -1, dtype=np.int64)
     size = 0
     for c in range(n_cells):
-        key = first_key[c]
-        x = ((key >> (2 * _KEY_BITS)) & _MASK) - _KEY_OFFSET
-        y = ((key >> _KEY_BITS) & _MASK) - _KEY_OFFSET
-        z = (key & _MASK) - _KEY_OFFSET
-        for d in range(13, 27):
-            other = _lookup(table, shift, _key_of(x + d // 9 - 1, y + (d // 3) % 3 - 1, z + d % 3 - 1, 0))
-            neighbour[c, d - 13] = other
+        for d in range(_CELL_FORWARD.shape[0]):
+            other = _lookup(table, shift, first_key[c] + _CELL_FORWARD[d])
+            neighbour[c, d] = other
             if other >= 0:
                 size += (cell_start[c + 1] - cell_start[c]) * (cell_start[other + 1] - cell_start[other])
     eu = np.empty(size, dtype=np.int32)
