@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -19,10 +20,22 @@ ROOT = Path(__file__).resolve().parents[2]  # the package's parent, for `python 
 SERVER_READY = "gmmap server ready"
 
 
+_handed_out: set[int] = set()  # free_port's ports so far, this process
+_handed_out_lock = threading.Lock()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback TCP port that is free now and that this process has not handed out before: the
+    port is released at once, so two calls in a row could get the same one (a server's Zenoh and
+    HTTP ports once did: "address already in use")."""
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        with _handed_out_lock:
+            if port not in _handed_out:
+                _handed_out.add(port)
+                return port
 
 
 def http_security_args(server: ServerConfig) -> tuple[str, ...]:
