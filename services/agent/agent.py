@@ -414,7 +414,7 @@ class Agent:
         updates = 0
         # A restarted agent resumes: acknowledged scans are through, held ones go out with the resender;
         # those the store lacks and the outbox no longer keeps are fitted again.
-        done = (self.outbox.acked("scan") | self.outbox.held("scan")) - self.lost
+        done = self.outbox.known("scan") - self.lost
         self.resumed = self.kept = 0
         sent = 0
         started = time.monotonic()

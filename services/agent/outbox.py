@@ -229,6 +229,16 @@ class Outbox:
         with self._lock:
             return {i for (i,) in self._db.execute("SELECT id FROM acked WHERE kind = ?", (kind,))}
 
+    def known(self, kind: str = "scan") -> set[int]:
+        """Ids of `kind` acknowledged or still held, read at once: an answer or a store's inventory
+        moves a message between the two between two reads, and one read of each could miss it
+        (a restarted agent once fitted such a scan again)."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id FROM acked WHERE kind = ?1 UNION SELECT id FROM outbox WHERE kind = ?1", (kind,)
+            )
+            return {i for (i,) in rows}
+
     def resends(self) -> int:
         """Publications beyond the first of the messages still held."""
         with self._lock:

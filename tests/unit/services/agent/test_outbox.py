@@ -150,3 +150,18 @@ def test_outbox_keeps_messages_until_acknowledged(tmp_path):
     box.close()
     with pytest.raises(ValueError, match="belongs to default/r"):
         Outbox(tmp_path / "o.db", "default", "other")
+
+
+def test_known_is_what_was_acknowledged_or_is_held_whichever_table_holds_it(tmp_path):
+    # A restarted agent does not fit these again; a store's inventory moves acknowledged messages
+    # back into the outbox and their answers move them out, so the two are read as one.
+    box = Outbox(tmp_path / "o.db", "default", "r")
+    for ident in (1, 2, 3):
+        box.add("scan", ident, f"k{ident}", b"x")
+    box.add("poses", 9, "kp", b"graph")
+    box.mark_sent([("scan", 1), ("scan", 2), ("scan", 3), ("poses", 9)])
+    box.acknowledge("scan", (1, 2), "s1")
+    assert box.known("scan") == {1, 2, 3} and box.known("poses") == {9}
+    box.requeue_missing({2}, None)  # a fresh store lacks scan 1: held again
+    assert box.held("scan") == {1, 3} and box.acked("scan") == {2} and box.known("scan") == {1, 2, 3}
+    box.close()
