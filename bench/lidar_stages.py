@@ -1,5 +1,5 @@
-"""Where the 3D fit's time goes: each stage of `fit_mixture_voxels` (the defaults `fit_scan` uses
-in 3D, no EM passes) on BALM scans, warm and with cold caches; one thread.
+"""Where the 3D fit's time goes: each stage of `fit_scan`'s 3D fit (`fit_mixture_voxels` at the
+defaults) on BALM scans, warm and with cold caches; one thread.
 
 - warm: the stage run again and again on the same scan, the median of `--runs`;
 - cold: each run after 2 million random writes over 320 MB (what OctoMap's insertion of a scan does
@@ -9,7 +9,7 @@ in 3D, no EM passes) on BALM scans, warm and with cold caches; one thread.
 
 Stages: sums (`voxels._voxel_statistics`), cells (K from the occupied 1 m cells), rings
 (`rings.ring_spacing` and `with_footprint`), edges (`voxel_merge._voxel_edges`), pieces, merge
-(`voxel_merge._merge`); `fit` is the whole `fit_mixture_voxels`, timed apart.
+(`voxel_merge._merge`); `fit` is the whole `fit_scan`, timed apart (what bench/lidar.py times).
 
     NUMBA_NUM_THREADS=1 .venv/bin/python bench/lidar_stages.py [--scans 3 4] [--runs 25]
 """
@@ -32,8 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from lidar import read
 from octomap_compare import machine_line
 
-from gmm_core import rings, voxel_merge, voxels
-from gmm_core.voxel_em import fit_mixture_voxels
+from gmm_core import fit_scan, rings, voxel_merge, voxels
 from services.config import load_config
 
 STAGES = ("sums", "cells", "rings", "edges", "pieces", "merge", "fit")
@@ -61,15 +60,7 @@ def stage_times(points: np.ndarray, config) -> list[float]:
 
 def fit_time(points: np.ndarray, config) -> float:
     start = time.perf_counter()
-    fit_mixture_voxels(
-        points,
-        config.n_components_of_count(len(points), 3),
-        config.voxel_size,
-        cell_size=config.component_size,
-        near_range=config.voxel_near_range,
-        reg_covar=config.reg_covar,
-        max_iter=0,
-    )
+    fit_scan(points, np.zeros((0, 3)), config)
     return time.perf_counter() - start
 
 
@@ -87,7 +78,8 @@ def main() -> None:
     print("|---|---|" + "---|" * len(STAGES))
     for i in args.scans:
         points = np.ascontiguousarray(scans[i].hits)
-        stage_times(points, config), fit_time(points, config)  # compile
+        stage_times(points, config)  # compile
+        fit_time(points, config)
         for cold in (False, True):
             runs = []
             for _ in range(args.runs):
