@@ -8,32 +8,43 @@ from gmm_core import em
 from gmm_core.voxels import _count_cells, _voxel_statistics, count_voxels
 
 
+def numpy_voxel_statistics(points, size, shift, near_range):
+    """_voxel_statistics by np.unique and np.add.at: the sums of em._features(x - shift) of the voxels
+    of x (twice `size` beyond near_range), the voxels in the order of their first point."""
+    far = np.linalg.norm(points, axis=1) > near_range
+    voxel = np.column_stack([np.floor(points / np.where(far, 2 * size, size)[:, None]), far])
+    cells, first, inverse = np.unique(voxel, axis=0, return_index=True, return_inverse=True)
+    expected = np.zeros((len(cells), 1 + points.shape[1] * (points.shape[1] + 3) // 2))
+    np.add.at(expected, inverse.ravel(), em._features(points - shift))
+    return expected[np.argsort(first)]
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("near_range", [np.inf, 2.5])
 def test_voxel_statistics_match_numpy(dim, near_range):
     # Beyond near_range of the origin, voxels of twice the size (a voxel of each kind per key).
+    # Thousands of points: several of the blocks the points are summed in, voxels first met in each.
     rng = np.random.default_rng(0)
-    points = np.repeat(rng.uniform(-3, 3, (400, dim)), rng.integers(1, 5, 400), axis=0)  # runs
+    points = np.repeat(rng.uniform(-3, 3, (1500, dim)), rng.integers(1, 5, 1500), axis=0)  # runs
     points = np.concatenate([points, rng.uniform(-3, 3, (300, dim))])
     shift = rng.uniform(-1, 1, dim)
     sums, keys = _voxel_statistics(points, 0.7, shift, near_range)
     far = np.linalg.norm(points, axis=1) > near_range
     assert 0 < far.sum() < len(points) or near_range == np.inf
-    voxel = np.column_stack([np.floor(points / np.where(far, 1.4, 0.7)[:, None]), far])
-    cells, first, inverse = np.unique(voxel, axis=0, return_index=True, return_inverse=True)
-    expected = np.zeros((len(cells), sums.shape[1]))
-    np.add.at(expected, inverse.ravel(), em._features(points - shift))  # voxels of x, sums of x - shift
-    expected = expected[np.argsort(first)]  # voxels in the order of their first point
+    expected = numpy_voxel_statistics(points, 0.7, shift, near_range)
     assert np.allclose(sums, expected, rtol=1e-12, atol=1e-9)
-    assert len(np.unique(keys)) == len(keys) == len(cells)
+    assert len(np.unique(keys)) == len(keys) == len(expected)
     if near_range == np.inf:
-        assert count_voxels(points, 0.7) == len(cells)
+        assert count_voxels(points, 0.7) == len(expected)
     assert count_voxels(points[:0], 0.7) == 0
+    assert _voxel_statistics(points[:0], 0.7, shift, near_range)[0].shape == (0, sums.shape[1])
     # Thousands of voxels: the hash table grows from 1024 slots several times on the way.
     spread = rng.uniform(-50, 50, (6000, dim))
     assert count_voxels(spread, 0.05) == len(np.unique(np.floor(spread / 0.05), axis=0))
     spread_sums = _voxel_statistics(spread, 0.05, np.zeros(dim), near_range)[0]
-    assert np.allclose(spread_sums.sum(axis=0), em._features(spread).sum(axis=0))
+    assert np.allclose(
+        spread_sums, numpy_voxel_statistics(spread, 0.05, np.zeros(dim), near_range), rtol=1e-12, atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("dim", [2, 3])
