@@ -21,10 +21,13 @@ from gmm_core.scan import ScanModel
 from protocol.errors import ProtocolError
 from protocol.keys import MAX_NODE, check_id
 from protocol.messages import (
+    MAX_QUERY_POINTS,
     Ack,
     MapQuery,
     MapReply,
     Message,
+    PointQuery,
+    PointReply,
     PoseGraphUpdate,
     Rejection,
     ScanMessage,
@@ -50,7 +53,17 @@ WEIGHT_SUM_TOLERANCE = 1e-3
 SYMMETRY_TOLERANCE = 1e-6  # relative to the component's largest covariance entry
 UNCHECKED = "unchecked error"  # prefix of errors caught by the safety net, not a named check
 
-TYPE_CODES = {ScanMessage: 1, PoseGraphUpdate: 2, Ack: 3, MapQuery: 4, MapReply: 5, Rejection: 6, StoreInventory: 7}
+TYPE_CODES = {
+    ScanMessage: 1,
+    PoseGraphUpdate: 2,
+    Ack: 3,
+    MapQuery: 4,
+    MapReply: 5,
+    Rejection: 6,
+    StoreInventory: 7,
+    PointQuery: 8,
+    PointReply: 9,
+}
 
 
 def encode(message: Message, encoding: str = "q") -> bytes:
@@ -398,15 +411,12 @@ def _encode_map_query(message: MapQuery, encoding: str) -> dict:
 
 def _decode_map_query(f: Fields, max_components: int) -> MapQuery:
     dim = f.int("d", "dimension", 2, 3)
-    robots = f.get("robots", "robots")
-    if robots is not None and type(robots) is not list:
-        raise ProtocolError("robots", f"must be an array of robot ids or nil, got {type(robots).__name__}")
     return MapQuery(
         check_id(f.get("f", "fleet"), "fleet"),
         f.array("lo", "bbox.lo", "<f8", dim),
         f.array("hi", "bbox.hi", "<f8", dim),
         f.float("res", "resolution"),
-        None if robots is None else tuple(robots),
+        _robots(f),
     )
 
 
@@ -436,6 +446,58 @@ def _decode_map_reply(f: Fields, max_components: int) -> MapReply:
     )
 
 
+def _robots(f: Fields) -> tuple[str, ...] | None:
+    robots = f.get("robots", "robots")
+    if robots is not None and type(robots) is not list:
+        raise ProtocolError("robots", f"must be an array of robot ids or nil, got {type(robots).__name__}")
+    return None if robots is None else tuple(robots)
+
+
+def _method(f: Fields) -> str:
+    method = f.get("m", "method")
+    if type(method) is not str:
+        raise ProtocolError("method", f"must be a string, got {type(method).__name__}")
+    return method
+
+
+def _encode_point_query(message: PointQuery, encoding: str) -> dict:
+    return {
+        "f": message.fleet,
+        "d": message.dim,
+        "n": message.points.shape[0],
+        "p": float64_bytes(message.points, "points"),
+        "res": message.resolution + 0.0,
+        "robots": None if message.robots is None else list(message.robots),
+        "m": message.method,
+    }
+
+
+def _decode_point_query(f: Fields, max_components: int) -> PointQuery:
+    dim = f.int("d", "dimension", 2, 3)
+    n = f.int("n", "count", 1, MAX_QUERY_POINTS)
+    return PointQuery(
+        check_id(f.get("f", "fleet"), "fleet"),
+        f.array("p", "points", "<f8", n * dim).reshape(n, dim),
+        f.float("res", "resolution"),
+        _robots(f),
+        _method(f),
+    )
+
+
+def _encode_point_reply(message: PointReply, encoding: str) -> dict:
+    return {
+        "f": message.fleet,
+        "res": message.resolution + 0.0,
+        "p": float32_bytes(message.probabilities, "probabilities"),
+        "m": message.method,
+    }
+
+
+def _decode_point_reply(f: Fields, max_components: int) -> PointReply:
+    probabilities = f.array("p", "probabilities", "<f4")
+    return PointReply(check_id(f.get("f", "fleet"), "fleet"), f.float("res", "resolution"), probabilities, _method(f))
+
+
 # An encoder takes the message class that TYPE_CODES gives its code.
 _ENCODERS: dict[int, Callable[[Any, str], dict]] = {
     1: _encode_scan,
@@ -445,6 +507,8 @@ _ENCODERS: dict[int, Callable[[Any, str], dict]] = {
     5: _encode_map_reply,
     6: _encode_rejection,
     7: _encode_inventory,
+    8: _encode_point_query,
+    9: _encode_point_reply,
 }
 _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
     1: _decode_scan,
@@ -454,5 +518,7 @@ _DECODERS: dict[int, Callable[[Fields, int], Message]] = {
     5: _decode_map_reply,
     6: _decode_rejection,
     7: _decode_inventory,
+    8: _decode_point_query,
+    9: _decode_point_reply,
 }
 _DECODERS_V2 = _DECODERS | {2: _decode_poses_v2}

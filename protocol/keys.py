@@ -5,6 +5,7 @@
     gmmap/<fleet>/<robot>/ack           Ack, Rejection     (server -> robot, put)
     gmmap/<fleet>/<robot>/inventory     StoreInventory     (queryable of the map server: robot gets)
     gmmap/<fleet>/map/occupancy         MapQuery/MapReply  (queryable of the map server)
+    gmmap/<fleet>/map/points            PointQuery/PointReply (queryable of the map server)
 
 Ids match `[A-Za-z0-9_-]{1,64}`, so they can never contain the key separators or the
 wildcards `*`, `$`, `?`, `#`.
@@ -56,6 +57,11 @@ def occupancy_key(fleet: str) -> str:
     return f"{PREFIX}/{check_id(fleet, 'fleet')}/map/occupancy"
 
 
+def points_key(fleet: str) -> str:
+    """Queryable of the occupancy at points (a PointQuery, answered by a PointReply)."""
+    return f"{PREFIX}/{check_id(fleet, 'fleet')}/map/points"
+
+
 def _fleet_or_any(fleet: str | None) -> str:
     return "*" if fleet is None else check_id(fleet, "fleet")
 
@@ -82,15 +88,15 @@ def occupancy_wildcard() -> str:
 def parse_key(key: str) -> tuple[str, str | None, str, int | None]:
     """Split a concrete key into (fleet, robot, kind, node).
 
-    kind is "scan", "poses", "ack", "inventory" or "occupancy"; node is set for scans only, robot is None
-    for occupancy. Anything else, including wildcards and non-canonical node numbers, raises.
+    kind is "scan", "poses", "ack", "inventory", "occupancy" or "points"; node is set for scans only,
+    robot is None for occupancy and points. Anything else, including wildcards and non-canonical node numbers, raises.
     """
     parts = key.split("/") if isinstance(key, str) else []
     if len(parts) < 4 or parts[0] != PREFIX:
         raise ProtocolError("key", f"not a gmmap key: {key!r:.200}")
     fleet = check_id(parts[1], "key.fleet")
-    if parts[2:] == ["map", "occupancy"]:
-        return fleet, None, "occupancy", None
+    if len(parts) == 4 and parts[2] == "map" and parts[3] in ("occupancy", "points"):
+        return fleet, None, parts[3], None
     robot = check_id(parts[2], "key.robot")
     if len(parts) == 4 and parts[3] in ("poses", "ack", "inventory"):
         return fleet, robot, parts[3], None

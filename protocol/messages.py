@@ -289,4 +289,70 @@ class MapReply:
         return self.origin.shape[0]
 
 
-Message = ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply | Rejection | StoreInventory
+# How the map server evaluates a point query: analytic, the expected evidence of every component at
+# the point's cell (the paper's Eq. 3-10); mc, Monte-Carlo grids of Eq. 11; auto, whichever the
+# server measured cheaper for these points (services/api/points.py).
+POINT_METHODS = ("auto", "analytic", "mc")
+MAX_QUERY_POINTS = 10_000  # points in one point query (the HTTP API's limit too)
+
+
+@dataclass(frozen=True, eq=False)
+class PointQuery:
+    """p(occupied) of the cell of size `resolution` centred on each of `points` (n, d) in the
+    fleet's world frame, evaluated by `method` (one of POINT_METHODS); only from `robots` when
+    given, else from every robot of the fleet."""
+
+    fleet: str
+    points: np.ndarray  # (n, d) metres, 1 <= n <= MAX_QUERY_POINTS, d 2 or 3
+    resolution: float
+    robots: tuple[str, ...] | None = None
+    method: str = "auto"
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        points = np.asarray(self.points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] not in (2, 3) or not 1 <= points.shape[0] <= MAX_QUERY_POINTS:
+            raise ProtocolError(
+                "points", f"must be 1 to {MAX_QUERY_POINTS:,} points of 2 or 3 coordinates, got shape {points.shape}"
+            )
+        if not np.isfinite(points).all():
+            raise ProtocolError("points", "must be finite")
+        resolution = _check_positive(self.resolution, "resolution")
+        if self.method not in POINT_METHODS:
+            raise ProtocolError("method", f"must be one of {', '.join(POINT_METHODS)}, got {self.method!r:.80}")
+        if self.robots is not None:
+            object.__setattr__(self, "robots", tuple(check_id(robot, "robots") for robot in self.robots))
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "resolution", resolution)
+
+    @property
+    def dim(self) -> int:
+        return self.points.shape[1]
+
+
+@dataclass(frozen=True, eq=False)
+class PointReply:
+    """The answer to a PointQuery: p(occupied) of each point's cell, in the query's order (0.5 where
+    nothing was observed), and the `method` that evaluated them ("analytic" or "mc")."""
+
+    fleet: str
+    resolution: float
+    probabilities: np.ndarray  # float32 (n,), values in [0, 1]
+    method: str
+
+    def __post_init__(self):
+        check_id(self.fleet, "fleet")
+        probabilities = np.asarray(self.probabilities, dtype=np.float32)
+        if probabilities.ndim != 1 or not 1 <= probabilities.shape[0] <= MAX_QUERY_POINTS:
+            raise ProtocolError("probabilities", f"must be 1 to {MAX_QUERY_POINTS:,} values, got {probabilities.shape}")
+        if not ((probabilities >= 0) & (probabilities <= 1)).all():  # also rejects NaN
+            raise ProtocolError("probabilities", "must lie in [0, 1]")
+        if self.method not in POINT_METHODS[1:]:
+            raise ProtocolError("method", f"must be analytic or mc, got {self.method!r:.80}")
+        object.__setattr__(self, "resolution", _check_positive(self.resolution, "resolution"))
+        object.__setattr__(self, "probabilities", probabilities)
+
+
+Message = (
+    ScanMessage | PoseGraphUpdate | Ack | MapQuery | MapReply | Rejection | StoreInventory | PointQuery | PointReply
+)

@@ -43,7 +43,7 @@ from .auth import Access, BearerAuth, access_dependency
 from .encoded import EncodedTiles
 from .limits import MAX_BODY, BodyLimit
 from .params import ApiError
-from .points import BLOCK, MAX_ANALYTIC_POINTS, MAX_GRIDS, choose_method, plan, point_probabilities
+from .points import evaluate
 
 VIEWER = Path(__file__).with_name("static") / "viewer.html"
 # Swagger UI's files as the fastapi-offline package ships them (a Swagger UI that reads OpenAPI 3.1).
@@ -376,20 +376,8 @@ def create_app(
 
     def points_reply(pts: np.ndarray, res: float, selected, field: str, method: str) -> dict:
         start = time.perf_counter()
-        grids = plan(pts, res)
-        if method == "auto":
-            method = choose_method(len(pts), len(grids), pts.shape[1])
-        if method == "analytic" and len(pts) > MAX_ANALYTIC_POINTS:
-            raise ApiError(field, f"at most {MAX_ANALYTIC_POINTS:,} points per request with method analytic")
-        if method == "mc" and len(grids) > MAX_GRIDS:
-            raise ApiError(
-                field,
-                f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per "
-                f"request: scattered points cost one each, points on a common lattice of spacing "
-                f"`resolution` (such as cell centres) share one per {BLOCK}x{BLOCK} cells",
-            )
         try:
-            prob = point_probabilities(fmap, pts, res, selected, grids, method)
+            prob, method = evaluate(fmap, pts, res, selected, method)
         except ValueError as e:
             raise ApiError(field, str(e)) from None
         state.metrics.query_seconds.observe(time.perf_counter() - start)

@@ -14,11 +14,12 @@ import numpy as np
 from gmm_core import Grid
 from gmm_core.occupancy import MAX_VARIANCE, MIN_VARIANCE
 from protocol import ProtocolError, check_id
+from protocol.messages import MAX_QUERY_POINTS
 
 MIN_RESOLUTION = 0.005  # metres
 MAX_RESOLUTION = 10.0
 MAX_CELLS = 16_000_000  # per occupancy request
-MAX_POINTS = 10_000  # per point request
+MAX_POINTS = MAX_QUERY_POINTS  # per point request (HTTP and Zenoh)
 MAX_COORDINATE = 1e9  # metres from the world origin, for points
 
 # The text formats, stated once: the parsers below accept exactly these (float() alone would also

@@ -22,12 +22,13 @@ import numpy as np
 from gmm_core import Grid
 from gmm_core.analytic.cells import occupancy_at_cells
 from gmm_core.occupancy import map_estimate
+from protocol.messages import POINT_METHODS
 
 BLOCK = 64  # cells per axis of one evaluation grid
 SNAP = 1e-6  # points within SNAP * R of a common lattice share it
 MAX_GRIDS = 1000  # Monte-Carlo grids per request: about 5 ms each on the Intel map
 MAX_ANALYTIC_POINTS = 1000  # points per request evaluated analytically: 6-15 ms each on the bench maps
-METHODS = ("auto", "analytic", "mc")
+METHODS = POINT_METHODS  # auto, analytic, mc: the HTTP API's and the Zenoh point query's
 # One point analytically costs about this many one-cell Monte-Carlo grids: bench/points.py, 100
 # scattered points, the mean of two runs (2D Intel 0.77, 0.66; 3D mine sim 0.57, 0.56)
 ANALYTIC_POINT_IN_GRIDS = {2: 0.7, 3: 0.57}
@@ -61,6 +62,28 @@ def plan(xy: np.ndarray, resolution: float) -> list[tuple[Grid, np.ndarray, np.n
 def choose_method(n_points: int, n_grids: int, dim: int) -> str:
     """auto's choice: analytic when it costs less than the Monte-Carlo grids the points need."""
     return "analytic" if n_points * ANALYTIC_POINT_IN_GRIDS[dim] < n_grids else "mc"
+
+
+def evaluate(
+    fleet_map, xy: np.ndarray, resolution: float, robots: Sequence[str] | None = None, method: str = "auto"
+) -> tuple[np.ndarray, str]:
+    """point_probabilities of one request, and the method that evaluated them (auto's choice made);
+    ValueError, saying why, for a request beyond one request's cost (MAX_ANALYTIC_POINTS, MAX_GRIDS).
+    What `/v1/occupancy/points` and the Zenoh point query both answer."""
+    if method not in METHODS:
+        raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {method!r}")
+    grids = plan(xy, resolution)
+    if method == "auto":
+        method = choose_method(len(xy), len(grids), xy.shape[1])
+    if method == "analytic" and len(xy) > MAX_ANALYTIC_POINTS:
+        raise ValueError(f"at most {MAX_ANALYTIC_POINTS:,} points per request with method analytic")
+    if method == "mc" and len(grids) > MAX_GRIDS:
+        raise ValueError(
+            f"the points need {len(grids)} separate evaluations, at most {MAX_GRIDS:,} per request: "
+            f"scattered points cost one each, points on a common lattice of spacing `resolution` (such as "
+            f"cell centres) share one per {BLOCK}x{BLOCK} cells"
+        )
+    return point_probabilities(fleet_map, xy, resolution, robots, grids, method), method
 
 
 def point_probabilities(

@@ -1,7 +1,7 @@
 """`gmmap server`: one process holding a fleet's map, fed over Zenoh, served over Zenoh and HTTP.
 
 Start-up: open the store, replay it into the FleetMap, then open the Zenoh session (scan and
-pose subscribers, occupancy queryable) and the HTTP app under uvicorn. SIGTERM/SIGINT stop
+pose subscribers, occupancy and point queryables) and the HTTP app under uvicorn. SIGTERM/SIGINT stop
 the HTTP server, undeclare the Zenoh entities, drain the ingest queue and close the session.
 """
 
@@ -21,6 +21,8 @@ from gmm_core.reconstruct import ReconstructionConfig
 from protocol import (
     MapQuery,
     MapReply,
+    PointQuery,
+    PointReply,
     ProtocolError,
     decode,
     encode,
@@ -28,10 +30,12 @@ from protocol import (
     inventory_wildcard,
     occupancy_key,
     parse_key,
+    points_key,
     poses_wildcard,
     scan_wildcard,
 )
 from services.api import params  # one set of limits for both APIs
+from services.api.points import evaluate
 from services.config import summary
 from services.host import release_free_memory
 from services.ros2.config import Ros2Config
@@ -80,8 +84,30 @@ def answer(state: ServerState, payload: bytes) -> bytes:
     return encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
 
 
+def answer_points(state: ServerState, payload: bytes) -> bytes:
+    """PointQuery bytes -> PointReply bytes, as `/v1/occupancy/points` answers (services/api/points.py:
+    the same limits, auto's same choice); ProtocolError naming the field for a bad query."""
+    query = decode(payload, expect=PointQuery)
+    if query.fleet != state.fleet:
+        raise ProtocolError("fleet", f"this server holds fleet {state.fleet}, not {query.fleet}")
+    try:
+        resolution = params.resolution(query.resolution)
+        params.check_dimension(query.dim, state.fleet_map.dim, "points")
+        points = params.points(query.points, query.dim, "points")
+        robots = None if query.robots is None else params.robots(list(query.robots))
+    except params.ApiError as error:
+        raise ProtocolError(error.field, error.message) from None
+    started = time.perf_counter()
+    try:
+        prob, method = evaluate(state.fleet_map, points, resolution, robots, query.method)
+    except ValueError as error:
+        raise ProtocolError("points", str(error)) from None
+    state.metrics.query_seconds.observe(time.perf_counter() - started)
+    return encode(PointReply(state.fleet, resolution, prob, method))
+
+
 class ZenohSide:
-    """The Zenoh session of a server: ingest subscribers, Ack publisher, occupancy queryable."""
+    """The Zenoh session of a server: ingest subscribers, Ack publisher, occupancy and point queryables."""
 
     def __init__(self, state: ServerState, ingest: Ingest, config: zenoh.Config):
         self.state = state
@@ -96,7 +122,12 @@ class ZenohSide:
             self.session.declare_subscriber(poses_wildcard(fleet), on_sample),
         ]
         self._queryables = [
-            self.session.declare_queryable(occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q)),
+            self.session.declare_queryable(
+                occupancy_key(fleet), lambda q: self._queries.submit(self._reply, q, occupancy_key(fleet), answer)
+            ),
+            self.session.declare_queryable(
+                points_key(fleet), lambda q: self._queries.submit(self._reply, q, points_key(fleet), answer_points)
+            ),
             # answered on Zenoh's thread: one SQLite read, and a robot waits for it to resume
             self.session.declare_queryable(inventory_wildcard(fleet), self._inventory),
         ]
@@ -104,17 +135,18 @@ class ZenohSide:
     def publish(self, key: str, payload: bytes) -> None:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, express=True)
 
-    def _reply(self, query: zenoh.Query) -> None:
+    def _reply(self, query: zenoh.Query, key: str, answer_bytes) -> None:
+        """Answers `query` on `key` with answer_bytes(state, its payload) (answer, answer_points)."""
         with query:  # leaving the block finalises the query (the querier stops waiting)
             try:
                 payload = query.payload
                 if payload is None:
-                    raise ProtocolError("payload", "an occupancy query carries a MapQuery")
-                query.reply(occupancy_key(self.state.fleet), answer(self.state, payload.to_bytes()))
+                    raise ProtocolError("payload", f"a query on {key} carries its query message")
+                query.reply(key, answer_bytes(self.state, payload.to_bytes()))
             except (ProtocolError, ValueError) as error:
                 query.reply_err(str(error))
             except Exception as error:  # noqa: BLE001 - reported to the querier, logged here
-                log.exception("occupancy query failed")
+                log.exception("query on %s failed", key)
                 query.reply_err(f"internal error: {type(error).__name__}")
 
     def _inventory(self, query: zenoh.Query) -> None:

@@ -39,6 +39,8 @@ from protocol.messages import (  # noqa: E402
     MapQuery,
     MapReply,
     Message,
+    PointQuery,
+    PointReply,
     PoseGraphUpdate,
     Rejection,
     ScanMessage,
@@ -242,6 +244,18 @@ VECTORS: dict[str, Vector] = {
         "3D map reply, 2 x 2 x 2 cells",
         lambda: MapReply(FLEET, [0.0, 0.0, -0.5], 0.25, np.arange(8).reshape(2, 2, 2) / 8),
     ),
+    "point_query_2d": Vector(
+        "2D point query, three points, every robot (robots nil), method auto",
+        lambda: PointQuery(FLEET, [[1.5, -2.25], [-0.0, 10.0], [3.0, 3.0]], 0.05),
+    ),
+    "point_query_3d": Vector(
+        "3D point query of one robot, two points, method analytic",
+        lambda: PointQuery(FLEET, [[0.25, 0.5, 1.0], [-4.0, 2.0, 0.125]], 0.1, (ROBOT,), "analytic"),
+    ),
+    "point_reply": Vector(
+        "point reply: three probabilities, evaluated by Monte Carlo",
+        lambda: PointReply(FLEET, 0.05, np.array([0.5, 0.875, 0.0625]), "mc"),
+    ),
 }
 
 
@@ -351,6 +365,12 @@ REFUSED: dict[str, Refused] = {
         "poses.nodes",
     ),
     "padding_bit": Refused("a set padding bit after the last record", with_padding_bit, "free.components"),
+    "point_count": Refused(
+        "a point query whose n says 4 points over the bytes of 3", edited("point_query_2d", (("n",), 4)), "points"
+    ),
+    "point_method": Refused(
+        "a point query of an unknown method", edited("point_query_3d", (("m",), "exact")), "method"
+    ),
     "stream_length": Refused(
         "a q stream of 28 bytes: no whole number of 58-bit records",
         edited("scan_2d_q", (("O", "c"), bytes(28))),

@@ -15,11 +15,23 @@ from gmm_core.metrics import grid_auroc
 from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import count_beams, reconstruct
 from gmm_core.sampling import scan_seed
-from protocol import Ack, MapQuery, MapReply, ScanMessage, ack_key, decode, encode, poses_key, scan_key
-from services.agent.map_client import MapQueryError, query_bytes
+from protocol import (
+    Ack,
+    MapQuery,
+    MapReply,
+    PointQuery,
+    ScanMessage,
+    ack_key,
+    decode,
+    encode,
+    points_key,
+    poses_key,
+    scan_key,
+)
+from services.agent.map_client import MapQueryError, query_bytes, query_points
 from services.map_server.store import read_graph
 from services.replay import data_extent
-from support.net import free_port, http_get, metric, wait_for
+from support.net import free_port, get, http_get, metric, wait_for
 from support.processes import EVERY_SCAN, HALVES, acked_nodes, store_db, stored_nodes
 
 RESOLUTION = 0.1
@@ -219,6 +231,55 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     _, prob = served_map(session, Grid.from_bbox([0, -2], [6, 2], 0.1))
     assert prob.max() > 0.5
     assert json.loads(http_get(hport, "/healthz"))["status"] == "ok"
+
+
+def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path):
+    """A robot's point query over Zenoh (gmmap/<fleet>/map/points) gets what GET /v1/occupancy/points
+    gives for the same points and method, auto's choice included; a bad one an error naming the field."""
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    session = session_to(zport)
+    rng = np.random.default_rng(11)
+    # A wall at x = 3 m seen from three poses along y: hits on it, free space in front of it.
+    acks = []
+
+    def acked(node: int, raw: bytes) -> bool:
+        session.put(scan_key("default", "w", node), raw)
+        return any(node in a.ids for a in acks)
+
+    sub = session.declare_subscriber(ack_key("default", "w"), lambda s: acks.append(decode(s.payload.to_bytes())))
+    try:
+        for node, y in enumerate((-1.0, 0.0, 1.0)):
+            wall = np.column_stack([np.full(120, 3.0), np.linspace(-3, 3, 120) - y]) + rng.normal(0, 0.01, (120, 2))
+            model = fit_scan(wall, np.zeros((0, 2)))
+            raw = encode(ScanMessage("default", "w", node, float(node), model, Pose.from_xytheta(0.0, y, 0.0)))
+            wait_for(lambda: acked(node, raw), 10, f"the Ack of scan {node}", interval=0.2)  # noqa: B023 - called here
+    finally:
+        sub.undeclare()
+
+    points = np.array([[3.0, 0.0], [1.5, 0.5], [-20.0, 20.0]])  # on the wall, in front of it, unseen
+    xy = ",".join(map(str, points.ravel().tolist()))
+    for method in ("auto", "analytic", "mc"):
+        reply = query_points(session, "default", points, 0.1, method=method, timeout=30)
+        status, _, body = get(f"http://127.0.0.1:{hport}/v1/occupancy/points?xy={xy}&resolution=0.1&method={method}")
+        assert status == 200, body
+        served = json.loads(body)
+        assert reply.method == served["method"] == ("mc" if method == "mc" else "analytic")  # 3 scattered points
+        assert np.array_equal(reply.probabilities, np.array(served["probabilities"], dtype=np.float32))
+        assert reply.probabilities[0] > 0.7 and reply.probabilities[1] < 0.3 and reply.probabilities[2] == 0.5
+    lattice = np.stack(np.meshgrid(np.arange(32) * 0.1 + 0.05, np.arange(32) * 0.1 + 0.05), -1).reshape(-1, 2)
+    assert query_points(session, "default", lattice, 0.1, ("w",), timeout=30).method == "mc"  # one grid for all
+
+    for query, field in (
+        (PointQuery("default", points, 0.001), "resolution"),
+        (PointQuery("default", np.zeros((2, 3)), 0.1), "points"),  # a 3D query of a 2D map
+        (PointQuery("default", rng.uniform(-50, 50, (1001, 2)), 0.1, None, "analytic"), "points"),
+        (PointQuery("other", points, 0.1), "fleet"),  # on this fleet's key
+    ):
+        replies = list(session.get(points_key("default"), payload=encode(query), timeout=30))
+        assert len(replies) == 1 and replies[0].err is not None
+        assert replies[0].err.payload.to_string().startswith(f"{field}:"), replies[0].err.payload.to_string()
+    assert query_points(session, "default", points[:1], 0.1, timeout=30).probabilities[0] > 0.7  # still serving
 
 
 def test_agent_and_server_meet_through_a_router(procs, data_dir, tmp_path):

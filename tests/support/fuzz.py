@@ -16,7 +16,17 @@ from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
 from protocol.codec import encode
-from protocol.messages import Ack, MapQuery, MapReply, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
+from protocol.messages import (
+    Ack,
+    MapQuery,
+    MapReply,
+    PointQuery,
+    PointReply,
+    PoseGraphUpdate,
+    Rejection,
+    ScanMessage,
+    StoreInventory,
+)
 from support.golden import version_2_update
 
 
@@ -72,6 +82,8 @@ def seed_messages(rng: np.random.Generator) -> list[bytes]:
         messages += [encode(update), version_2_update(update)]  # stores and outboxes hold version 2
         messages.append(encode(MapQuery("fleet-a", np.zeros(dim), np.ones(dim), 0.1, ("robot_1",))))
         messages.append(encode(MapReply("fleet-a", np.zeros(dim), 0.5, rng.uniform(size=(2,) * dim))))
+        messages.append(encode(PointQuery("fleet-a", rng.normal(0, 20, (3, dim)), 0.1, None, "analytic")))
+        messages.append(encode(PointReply("fleet-a", 0.1, rng.uniform(size=3), "mc")))
     store = "0123456789abcdef0123456789abcdef"
     messages.append(encode(Ack("fleet-a", "robot_1", store, "scan", (1, 2, 3), queued=(4,))))
     messages.append(encode(Rejection("fleet-a", "robot_1", store, "scan", (4, 5), "quota", "512 MiB used")))

@@ -14,7 +14,17 @@ from gmm_core.mixture import Mixture
 from protocol import quantize as qz
 from protocol.bitstream import unpack_records
 from protocol.codec import decode
-from protocol.messages import Ack, MapQuery, Message, PoseGraphUpdate, Rejection, ScanMessage, StoreInventory
+from protocol.messages import (
+    Ack,
+    MapQuery,
+    Message,
+    PointQuery,
+    PointReply,
+    PoseGraphUpdate,
+    Rejection,
+    ScanMessage,
+    StoreInventory,
+)
 from protocol.wire import pose_bytes, pose_vector
 
 FOLDER = Path(__file__).resolve().parents[1] / "golden"
@@ -81,6 +91,18 @@ def decoded_values(message: Message) -> dict:
         return {"type": kind, "fleet": message.fleet, "lo": message.lo.tolist(), "hi": message.hi.tolist()} | {
             "resolution": message.resolution,
             "robots": robots,
+        }
+    if isinstance(message, PointQuery):
+        robots = None if message.robots is None else list(message.robots)
+        return {"type": kind, "fleet": message.fleet, "points": message.points.tolist()} | {
+            "resolution": message.resolution,
+            "robots": robots,
+            "method": message.method,
+        }
+    if isinstance(message, PointReply):
+        return {"type": kind, "fleet": message.fleet, "resolution": message.resolution} | {
+            "probabilities": message.probabilities.tolist(),
+            "method": message.method,
         }
     return {
         "type": kind,

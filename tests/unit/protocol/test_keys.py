@@ -7,6 +7,7 @@ from protocol import (
     ack_key,
     occupancy_key,
     parse_key,
+    points_key,
     poses_key,
     poses_wildcard,
     scan_key,
@@ -24,6 +25,9 @@ def test_keys_build_and_parse():
     assert parse_key(poses_key("f", "r")) == ("f", "r", "poses", None)
     assert parse_key(ack_key("f", "r")) == ("f", "r", "ack", None)
     assert parse_key(occupancy_key("f")) == ("f", None, "occupancy", None)
+    assert points_key("f") == "gmmap/f/map/points"
+    assert parse_key(points_key("f")) == ("f", None, "points", None)
+    assert parse_key("gmmap/f/map/poses") == ("f", "map", "poses", None)  # a robot may be called map
 
 
 @pytest.mark.parametrize(

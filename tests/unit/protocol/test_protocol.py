@@ -17,6 +17,8 @@ from protocol import (
     Ack,
     MapQuery,
     MapReply,
+    PointQuery,
+    PointReply,
     PoseGraphUpdate,
     ProtocolError,
     ScanMessage,
@@ -193,6 +195,14 @@ def test_other_messages_round_trip():
     grid = np.random.default_rng(0).uniform(size=(3, 4)).astype(np.float32)
     reply = decode(encode(MapReply("f", [1.0, 2.0], 0.1, grid)), expect=MapReply)
     np.testing.assert_array_equal(reply.probabilities, grid)
+    points = np.random.default_rng(1).normal(0, 50, (5, 3))
+    asked = decode(encode(PointQuery("f", points, 0.2, ("b", "a"), "analytic")), expect=PointQuery)
+    assert (asked.dim, asked.resolution, asked.robots, asked.method) == (3, 0.2, ("b", "a"), "analytic")
+    np.testing.assert_array_equal(asked.points, points)  # float64 on the wire, as a MapQuery's box
+    assert decode(encode(PointQuery("f", [[1.0, 2.0]], 0.05))).method == "auto"
+    answered = decode(encode(PointReply("f", 0.2, grid[0], "mc")), expect=PointReply)
+    assert answered.method == "mc" and answered.resolution == 0.2
+    np.testing.assert_array_equal(answered.probabilities, grid[0])
 
 
 # --- sizes: the targets of the issue, every byte of the message counted
@@ -418,6 +428,26 @@ INVALID_OTHERS = [
         lambda r: set_path(r, ("p",), np.array([0, 0.5, 1, 1.5], "<f4").tobytes()),
         "probabilities",
     ),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 3), "points"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 0), "count"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 10_001), "count"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("d",), 4), "dimension"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("m",), "exact"), "method"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("m",), None), "method"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("res",), -1.0), "resolution"),
+    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("robots",), ["a b"]), "robots"),
+    (
+        PointQuery("f", [[0, 0], [1, 1]], 0.1),
+        lambda r: set_path(r, ("p",), np.array([0, 0, np.nan, 1], "<f8").tobytes()),
+        "points",
+    ),
+    (PointReply("f", 0.1, [0.5], "mc"), lambda r: set_path(r, ("m",), "auto"), "method"),
+    (PointReply("f", 0.1, [0.5], "mc"), lambda r: set_path(r, ("p",), b""), "probabilities"),
+    (
+        PointReply("f", 0.1, [0.5], "mc"),
+        lambda r: set_path(r, ("p",), np.array([2.0], "<f4").tobytes()),
+        "probabilities",
+    ),
 ]
 
 
@@ -453,6 +483,12 @@ def test_encode_refuses_what_decode_would_reject():
         ScanMessage("fleet", "robot", 0, 0.0, scan_of(good, Mixture.empty(2)).model, Pose.identity(3))
     with pytest.raises(ProtocolError, match="^message: cannot encode"):
         encode("not a message")
+    for points, field in (([[0.0, np.nan]], "points"), (np.zeros((0, 2)), "points"), (np.zeros((10_001, 3)), "points")):
+        with pytest.raises(ProtocolError) as caught:
+            PointQuery("f", points, 0.1)
+        assert caught.value.field == field
+    with pytest.raises(ProtocolError, match="^method:"):
+        PointQuery("f", [[0.0, 0.0]], 0.1, None, "exact")
 
 
 # --- fuzz: random and mutated bytes see only ProtocolError or a valid message
@@ -531,6 +567,8 @@ def test_version_2_messages_of_every_type_still_decode():
         (Ack("f", "r", "s", "scan", (1, 2), (3,)), "q"),
         (MapQuery("f", [0, 0], [1, 1], 0.1, ("a",)), "q"),
         (MapReply("f", [0, 0], 0.1, np.full((2, 3), 0.5)), "q"),
+        (PointQuery("f", [[0, 0]], 0.1, None, "mc"), "q"),
+        (PointReply("f", 0.1, [0.25], "analytic"), "q"),
     ):
         raw = wire(message, encoding)
         assert raw["v"] == 3
