@@ -136,7 +136,8 @@ class ZenohSide:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def _reply(self, query: zenoh.Query, key: str, answer_bytes) -> None:
-        """Answers `query` on `key` with answer_bytes(state, its payload) (answer, answer_points)."""
+        """Answers `query` on `key` with answer_bytes(state, its payload) (answer, answer_points); a
+        refused query is counted as a rejected message of its key's kind, by the field at fault."""
         with query:  # leaving the block finalises the query (the querier stops waiting)
             try:
                 payload = query.payload
@@ -144,6 +145,8 @@ class ZenohSide:
                     raise ProtocolError("payload", f"a query on {key} carries its query message")
                 query.reply(key, answer_bytes(self.state, payload.to_bytes()))
             except (ProtocolError, ValueError) as error:
+                field = error.field if isinstance(error, ProtocolError) else "value"
+                self.state.metrics.rejected.labels(parse_key(key)[2], field).inc()
                 query.reply_err(str(error))
             except Exception as error:  # noqa: BLE001 - reported to the querier, logged here
                 log.exception("query on %s failed", key)

@@ -16,7 +16,7 @@ import zenoh
 
 from gmm_core import Pose, fit_scan
 from protocol import PoseGraphUpdate, Rejection, ScanMessage, decode, encode, poses_key, scan_key
-from services.agent.map_client import query_occupancy
+from services.agent.map_client import query_occupancy, query_points
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
@@ -148,6 +148,8 @@ def test_with_access_control_robot_a_cannot_write_under_robot_b(
     try:
         reply = query_occupancy(reader, "default", [-5, -5], [5, 5], 0.5, timeout=20)
         assert reply.probabilities.shape == (20, 20)
+        at_points = query_points(reader, "default", [[0.0, 0.0], [1.0, 2.0]], 0.5, timeout=20)
+        assert at_points.probabilities.shape == (2,) and at_points.method == "analytic"
     finally:
         reader.close()
     wrong = security / "wrong.json5"

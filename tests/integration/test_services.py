@@ -231,6 +231,9 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     _, prob = served_map(session, Grid.from_bbox([0, -2], [6, 2], 0.1))
     assert prob.max() > 0.5
     assert json.loads(http_get(hport, "/healthz"))["status"] == "ok"
+    text = http_get(hport, "/metrics").decode()  # the refused queries counted, by the field at fault
+    assert metric(text, "gmmap_messages_rejected_total", kind="occupancy", reason="message") == 1
+    assert metric(text, "gmmap_messages_rejected_total", kind="occupancy", reason="resolution") == 1
 
 
 def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path):
@@ -280,6 +283,9 @@ def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path):
         assert len(replies) == 1 and replies[0].err is not None
         assert replies[0].err.payload.to_string().startswith(f"{field}:"), replies[0].err.payload.to_string()
     assert query_points(session, "default", points[:1], 0.1, timeout=30).probabilities[0] > 0.7  # still serving
+    text = http_get(hport, "/metrics").decode()
+    for field, count in (("resolution", 1), ("points", 2), ("fleet", 1)):
+        assert metric(text, "gmmap_messages_rejected_total", kind="points", reason=field) == count
 
 
 def test_agent_and_server_meet_through_a_router(procs, data_dir, tmp_path):
