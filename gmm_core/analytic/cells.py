@@ -103,7 +103,8 @@ def scan_evidence(
     models_with_poses, centers, cell_size: float, *, parallel: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expected hit and miss counts (N_H, N_M of Eq. 11) at each cell from scan models with world
-    poses, a list of (ScanModel, Pose). Only components whose 5-sigma cone reaches a cell count.
+    poses, a list of (ScanModel, Pose) or (NodeComponents, Pose) (components.py: decomposed once).
+    Only components whose 5-sigma cone reaches a cell count.
     `parallel`: on numba's threads; False: on the calling thread alone (safe from many threads)."""
     models_with_poses = list(models_with_poses)
     dim = models_with_poses[0][0].dim if models_with_poses else np.shape(centers)[-1]
@@ -129,7 +130,7 @@ def occupancy_at_cells(
 ) -> np.ndarray:
     """p(occupied) of each cell, Eq. 11, from the analytic evidence of scan models with world poses.
 
-    models_with_poses: list of (ScanModel, Pose); centers (M, d); cell_size: side of the square
+    models_with_poses: list of (ScanModel or NodeComponents, Pose); centers (M, d); cell_size: side of the square
     or cube; prior: N_p; parallel: as scan_evidence. Local occupancy evaluation for a few cells,
     without a grid.
     """

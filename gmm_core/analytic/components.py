@@ -10,6 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from gmm_core.mixture import Mixture
+from gmm_core.scan import ScanModel
+
 NEGLIGIBLE_SIGMA = 7.0  # isotropic distance beyond which a component's mass (< 2.3e-11) is dropped
 REACH_SIGMA = 5.0  # culling: a component reaches cells within the cone of its 5-sigma ellipse
 
@@ -80,30 +83,66 @@ class Components:
         return self.axes, self.dist_means, self.reaches, self.half_angles
 
 
+@dataclass(frozen=True)
+class NodeComponents:
+    """A scan model's components in its node frame (both mixtures, the free one flagged), their
+    covariances decomposed once: a pose turns the eigenvectors (R V) and leaves the eigenvalues, so
+    world_components poses them (Eq. 2) without decomposing again. What a map server keeps per node."""
+
+    means: np.ndarray  # (K, d)
+    evals: np.ndarray  # (K, d) ascending, floored as isotropic_maps floors them
+    evecs: np.ndarray  # (K, d, d) columns
+    counts: np.ndarray  # (K,) N pi_k
+    max_range: np.ndarray  # (K,) bool: from a free mixture
+    origin: np.ndarray  # (d,) the sensor in the node frame
+
+    @staticmethod
+    def of(model: ScanModel) -> NodeComponents:
+        mixtures = (model.occupied, model.free)
+        _, evals, evecs, _ = isotropic_maps(np.concatenate([m.covariances for m in mixtures]))
+        return NodeComponents(
+            np.ascontiguousarray(np.concatenate([m.means for m in mixtures])),
+            evals,
+            evecs,
+            np.concatenate([m.support * m.weights for m in mixtures]),
+            np.concatenate([np.full(m.n_components, m is model.free) for m in mixtures]),
+            np.asarray(model.origin, dtype=np.float64),
+        )
+
+    @property
+    def dim(self) -> int:
+        return self.origin.shape[0]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.means, self.evals, self.evecs, self.counts, self.max_range, self.origin))
+
+
 def world_components(models_with_poses, dim: int) -> Components:
-    empty = (np.zeros((0, dim)), np.zeros((0, dim, dim)), np.zeros((0, dim)), np.zeros(0), np.zeros(0, bool))
-    parts = [empty]  # (means, covariances, sensors, counts, max_range) per mixture
-    for model, pose in models_with_poses:
-        if model.dim != dim:
-            raise ValueError(f"scan model is {model.dim}D, cells are {dim}D")
-        sensor = pose.apply(model.origin[None])[0]
-        for mixture, is_free in ((model.occupied, False), (model.free, True)):
-            world = mixture.transformed(pose)
-            parts.append(
-                (
-                    world.means,
-                    world.covariances,
-                    np.broadcast_to(sensor, world.means.shape),
-                    world.support * world.weights,
-                    np.full(world.n_components, is_free),
-                )
-            )
-    means, covs, sensors, counts, max_range = (np.ascontiguousarray(np.concatenate(p)) for p in zip(*parts))
-    covs, evals, evecs, isos = isotropic_maps(covs)
+    """Every component of (ScanModel or NodeComponents, Pose) pairs in the world frame (Eq. 2)."""
+    nodes = [(m if isinstance(m, NodeComponents) else NodeComponents.of(m), pose) for m, pose in models_with_poses]
+    for node, _ in nodes:
+        if node.dim != dim:
+            raise ValueError(f"scan model is {node.dim}D, cells are {dim}D")
+    if not nodes:  # no node: no component (the arrays below want one node to stack)
+        nodes = [(NodeComponents.of(ScanModel(Mixture.empty(dim), Mixture.empty(dim), np.zeros(dim), 1.0)), None)]
+    sizes = [len(node.counts) for node, _ in nodes]
+    rotations = np.repeat([np.eye(dim) if p is None else p.R for _, p in nodes], sizes, axis=0)
+    translations = np.repeat([np.zeros(dim) if p is None else p.t for _, p in nodes], sizes, axis=0)
+    means = np.einsum("kij,kj->ki", rotations, np.concatenate([n.means for n, _ in nodes])) + translations
+    sensors = np.einsum("kij,kj->ki", rotations, np.repeat([n.origin for n, _ in nodes], sizes, axis=0)) + translations
+    evals = np.concatenate([n.evals for n, _ in nodes])
+    evecs = rotations @ np.concatenate([n.evecs for n, _ in nodes])
+    covs = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, -1, -2)
+    isos = np.swapaxes(evecs, -1, -2) / np.sqrt(evals)[:, :, None]
+    counts = np.concatenate([n.counts for n, _ in nodes])
+    max_range = np.concatenate([n.max_range for n, _ in nodes])
     dist_means = np.linalg.norm(means - sensors, axis=1)
     axes = np.ascontiguousarray((means - sensors) / np.maximum(dist_means, 1e-300)[:, None])
     reaches = REACH_SIGMA * np.sqrt(evals[:, -1])
     half_angles = np.arcsin(np.minimum(reaches / np.maximum(dist_means, 1e-300), 1.0))
+    c = np.ascontiguousarray
     return Components(
-        means, covs, evals, evecs, isos, sensors, counts, max_range, axes, dist_means, reaches, half_angles
-    )
+        c(means), c(covs), c(evals), c(evecs), c(isos), c(sensors), c(counts), c(max_range),
+        axes, dist_means, reaches, half_angles,
+    )  # fmt: skip

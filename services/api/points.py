@@ -113,5 +113,5 @@ def analytic_probabilities(fleet_map, xy: np.ndarray, resolution: float, robots:
     points' box (gmm_core.analytic.cells: components whose cone misses a cell are skipped there).
     On the calling thread alone: the API's request threads may evaluate at the same time."""
     box = Grid.from_bbox(xy.min(axis=0) - resolution / 2, xy.max(axis=0) + resolution / 2, resolution)
-    models = fleet_map.posed_models(box, robots)
-    return occupancy_at_cells(models, xy, resolution, fleet_map.prior, parallel=False).astype(np.float32)
+    nodes = fleet_map.posed_components(box, robots)
+    return occupancy_at_cells(nodes, xy, resolution, fleet_map.prior, parallel=False).astype(np.float32)

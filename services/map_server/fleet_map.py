@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gmm_core import Grid, Pose, ScanModel
+from gmm_core.analytic.components import NodeComponents
 from gmm_core.occupancy import DEFAULT_PRIOR
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
@@ -123,12 +124,13 @@ class FleetMap:
         hits, misses = self._tracers.trace(grid, list(reaching.values()), [])
         return hits.astype(np.float32), misses.astype(np.float32)
 
-    def posed_models(self, grid: Grid, robots: Sequence[str] | None = None) -> list[tuple[ScanModel, Pose]]:
-        """(scan model, world pose) of every node that can reach `grid` (all robots or `robots`):
-        what the analytic evidence (gmm_core.analytic) is computed from."""
+    def posed_components(self, grid: Grid, robots: Sequence[str] | None = None) -> list[tuple[NodeComponents, Pose]]:
+        """(components in the node frame, world pose) of every node that can reach `grid` (all robots or
+        `robots`): what the analytic evidence (gmm_core.analytic) is computed from, each node's
+        decomposed once and kept with its samples."""
         with self._lock:  # a snapshot of the reaching nodes and their world poses
             reaching = self._nodes.reaching(grid, robots)
-        return [(self._samples.model(posed.node), posed.pose) for posed in reaching.values()]
+        return [(self._samples.components(posed.node), posed.pose) for posed in reaching.values()]
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:
         """p(occupied) on `grid`, Eq. 11; cached, and brought up to date by tracing only what changed

@@ -7,7 +7,10 @@ component in 2D), and per resolution (and samples per cell) asked the counts, of
 (24 bytes a component), so a query neither decodes the node's message (held by the node, or read from the
 store when the node holds none) nor repeats its linear algebra. In the node frame: a pose-graph
 update moves the samples at trace time (Eq. 2) and never redraws them. Deterministic by the
-node's seed, so an evicted entry made again draws the same samples.
+node's seed, so an evicted entry made again draws the same samples. For the analytic evidence of
+point queries (services/api/points.py) an entry also keeps the node's components with their
+covariances decomposed (gmm_core.analytic.components.NodeComponents, about 130 bytes a component in
+3D), made the first time a point query reaches the node.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from gmm_core import ScanModel
+from gmm_core.analytic.components import NodeComponents
 from gmm_core.sampling import ScanSampler, ScanSamples
 from protocol import ScanMessage, decode
 
@@ -28,8 +32,9 @@ SAMPLE_CACHE_BYTES = 256 << 20  # nodes ready to sample, with their per-resoluti
 
 @dataclass
 class _Entry:
-    sampler: ScanSampler
+    sampler: ScanSampler | None = None  # None until the node is first traced
     at: dict[tuple[float, float], ScanSamples] = field(default_factory=dict)  # by (resolution, samples per cell)
+    components: NodeComponents | None = None  # None until a point query first reaches the node
     nbytes: int = 0
 
 
@@ -48,34 +53,60 @@ class SampleCache:
         at = (resolution, self.samples_per_cell if samples_per_cell is None else samples_per_cell)
         with self._lock:
             entry = self._entries.get(node.key)
+            sampler = None if entry is None else entry.sampler
             if entry is not None:
                 self._entries.move_to_end(node.key)
                 samples = entry.at.get(at)
                 if samples is not None:
                     return samples
         # Made outside the lock; a thread that makes the same entry meanwhile makes the same samples.
-        if entry is None:
-            entry = _Entry(ScanSampler.of(self.model(node), node.seed, self.samples_per_cell))
-        samples = entry.sampler.at(*at)
+        if sampler is None:
+            sampler = ScanSampler.of(self.model(node), node.seed, self.samples_per_cell)
+        samples = sampler.at(*at)
         with self._lock:
-            held = self._entries.get(node.key)
-            if held is None:  # new, or evicted meanwhile: counted with what it holds
-                held = self._entries[node.key] = entry
-                entry.nbytes = entry.sampler.nbytes + sum(_nbytes(s) for s in entry.at.values())
-                self.bytes_held += entry.nbytes
+            held = self._held(node.key)
+            if held.sampler is None:
+                held.sampler = sampler
+                self._count(held, sampler.nbytes)
             if at not in held.at:
                 held.at[at] = samples
-                added = _nbytes(samples)
-                held.nbytes += added
-                self.bytes_held += added
+                self._count(held, _nbytes(samples))
             self._evict()
         return samples
+
+    def components(self, node: Node) -> NodeComponents:
+        """The node's components in its node frame, decomposed (for the analytic evidence)."""
+        with self._lock:
+            entry = self._entries.get(node.key)
+            if entry is not None:
+                self._entries.move_to_end(node.key)
+                if entry.components is not None:
+                    return entry.components
+        made = NodeComponents.of(self.model(node))  # outside the lock, as samples
+        with self._lock:
+            held = self._held(node.key)
+            if held.components is None:
+                held.components = made
+                self._count(held, made.nbytes)
+            self._evict()
+            return held.components
+
+    def _held(self, key: NodeKey) -> _Entry:
+        """The entry of `key`, a new one if there is none (evicted meanwhile); under the lock."""
+        held = self._entries.get(key)
+        if held is None:
+            held = self._entries[key] = _Entry()
+        return held
+
+    def _count(self, entry: _Entry, nbytes: int) -> None:
+        entry.nbytes += nbytes
+        self.bytes_held += nbytes
 
     def prime(self, key: NodeKey, seed: int, model: ScanModel) -> None:
         """Make node `key` ready to sample from its model at hand (ingest decoded it to check it), so
         the first tile to trace it neither reads nor decodes it again."""
-        entry = _Entry(ScanSampler.of(model, seed, self.samples_per_cell))
-        entry.nbytes = entry.sampler.nbytes
+        sampler = ScanSampler.of(model, seed, self.samples_per_cell)
+        entry = _Entry(sampler, nbytes=sampler.nbytes)
         with self._lock:
             if key in self._entries:
                 return

@@ -5,7 +5,8 @@ in a fresh server the first decoded scans and the first tile waited about 0.6 s 
 (decoding, samplers, tracing, Eq. 11), while the robots' first scans queued behind them
 (docs/RELIABILITY.md, "Eighth session"). `warm_kernels` makes those first calls on a map of its
 own, before the server subscribes or listens: the same code paths as ingest and a tile (and its
-picture), in 2D and 3D, with both scan encodings and a pose-graph update.
+picture), in 2D and 3D, with both scan encodings and a pose-graph update, and a point query by
+either method (without it, a fresh server's first analytic point query compiled for 2 s).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from gmm_core import Grid, Mixture, Pose, ScanModel
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode
+from services.api.points import evaluate
 from services.render import occupancy_png
 
 from .fleet_map import FleetMap
@@ -52,6 +54,8 @@ def warm_kernels() -> float:
             moved = Pose(np.eye(dim), np.full(dim, 0.6))
             fleet_map.apply_poses(PoseGraphUpdate(_FLEET, _ROBOT, 1, ((0, moved), (1, moved))))
             fleet_map.occupancy(grid)  # the moved nodes traced out and in again
+            for method in ("analytic", "mc"):  # a point query, as the HTTP API and the Zenoh queryable answer it
+                evaluate(fleet_map, np.zeros((2, dim)), 0.5, None, method)
         finally:
             fleet_map.close()
     return time.perf_counter() - start

@@ -177,7 +177,7 @@ def test_points(server, fleet_map):
     assert status == 200 and np.allclose(json.loads(body)["probabilities"], one_cell, atol=1e-6)
     assert json.loads(body)["probabilities"][2] == 0.5
     box = Grid.from_bbox(points.min(0) - 0.1, points.max(0) + 0.1, 0.2)  # the points' cells
-    analytic = occupancy_at_cells(fleet_map.posed_models(box), points, 0.2)
+    analytic = occupancy_at_cells(fleet_map.posed_components(box), points, 0.2)
     xy = ",".join(map(repr, points.ravel().tolist()))
     by_get = get(f"{server.url}/v1/occupancy/points?xy={xy}&resolution=0.2&method=analytic")[2]
     for reply in (post(f"{server.url}/v1/occupancy/points", asked)[1], by_get):

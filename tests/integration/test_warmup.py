@@ -1,6 +1,6 @@
 """A map server loads numba's kernels before it serves (services/map_server/warmup.py): after
-`warm_kernels`, real scans decoded, added, re-posed and traced into a viewer's tile compile nothing
-more. Run in a fresh interpreter, where nothing else has called the kernels yet."""
+`warm_kernels`, real scans decoded, added, re-posed and traced into a viewer's tile, and point queries
+of both methods, compile nothing more. Run in a fresh interpreter, where nothing else has called the kernels yet."""
 
 import json
 import subprocess
@@ -40,6 +40,7 @@ from protocol import PoseGraphUpdate, ScanMessage, decode, encode
 from services.datasets import read_scans
 from services.map_server.fleet_map import FleetMap
 from services.map_server.nodes import ScanEntry
+from services.api.points import evaluate
 
 
 # A robot's side first: real scans fitted and encoded (its kernels are not the server's).
@@ -67,6 +68,9 @@ for dim, raws in robots.items():  # the server's side: ingest, a tile, a correct
     moved = tuple((node, Pose(np.eye(dim), np.full(dim, 0.3))) for node in range(len(raws)))
     fleet_map.apply_poses(PoseGraphUpdate("f", f"r{dim}", 1, moved))
     fleet_map.occupancy(grid)
+    points = np.random.default_rng(0).uniform(-3, 3, (5, dim))
+    for method in ("analytic", "mc"):  # a point query, as the HTTP API and the Zenoh queryable answer it
+        evaluate(fleet_map, points, 0.1, None, method)
     fleet_map.close()
 report(before, warmed, compiled())
 """

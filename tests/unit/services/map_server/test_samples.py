@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from gmm_core import fit_scan
+from gmm_core.analytic.components import NodeComponents
 from gmm_core.sampling import ScanSamples, scan_samples, scan_seed
 from protocol import ScanMessage, decode, encode
 from services.map_server import samples
@@ -93,3 +94,21 @@ def test_the_cache_holds_at_most_its_bytes_and_evicts_the_least_recent(messages,
     assert nodes[-1].key in cache._entries and nodes[0].key not in cache._entries
     # an evicted node made again draws the same samples
     assert_same(cache.samples(nodes[0], 0.1), scan_samples(messages[0].model, 0.1, nodes[0].seed, 4.0))
+
+
+def test_a_nodes_components_are_decomposed_once_and_counted_with_its_samples(messages, monkeypatch):
+    """Point queries' analytic evidence (services/api/points.py): a node's components in its frame,
+    NodeComponents.of its decoded model, made once, in the same entry and byte bound as its samples."""
+    cache = SampleCache(4.0)
+    nodes = held_nodes(messages)
+    first = cache.components(nodes[0])
+    expected = NodeComponents.of(messages[0].model)
+    for field in ("means", "evals", "evecs", "counts", "max_range", "origin"):
+        assert np.array_equal(getattr(first, field), getattr(expected, field)), field
+    assert cache.components(nodes[0]) is first and cache.bytes_held == first.nbytes
+    cache.samples(nodes[0], 0.1)  # the same entry: its samples join the components
+    assert len(cache._entries) == 1 and cache.bytes_held == cache._entries[nodes[0].key].nbytes > first.nbytes
+    monkeypatch.setattr(samples, "SAMPLE_CACHE_BYTES", 3 * first.nbytes)
+    for node in nodes:
+        cache.components(node)
+    assert cache.bytes_held <= 3 * first.nbytes * 1.5 and nodes[0].key not in cache._entries
