@@ -69,9 +69,8 @@ def evaluate(
 ) -> tuple[np.ndarray, str]:
     """point_probabilities of one request, and the method that evaluated them (auto's choice made);
     ValueError, saying why, for a request beyond one request's cost (MAX_ANALYTIC_POINTS, MAX_GRIDS).
-    What `/v1/occupancy/points` and the Zenoh point query both answer."""
-    if method not in METHODS:
-        raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {method!r}")
+    What `/v1/occupancy/points` and the Zenoh point query both answer; an unknown method is
+    point_probabilities' ValueError."""
     grids = plan(xy, resolution)
     if method == "auto":
         method = choose_method(len(xy), len(grids), xy.shape[1])
