@@ -24,7 +24,7 @@ from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
 from services.map_server.tracers import TracerLoad, TracersSaturated
 from services.render import occupancy_png, probability_png
-from support.browser import CENTRE, FREE_GREY, headless_chromium, screenshot
+from support.browser import CENTRE, FREE_GREY, clicked, headless_chromium, screenshot
 from support.net import get, post
 from support.uvicorn_thread import Server
 
@@ -312,6 +312,23 @@ def test_api_docs_render_offline(server, tmp_path):
     """Swagger UI's scripts come from the server itself: the page lists the API with no network beyond it."""
     dom = headless_chromium(tmp_path, "--dump-dom", f"{server.url}/docs").stdout.decode()
     assert "/v1/occupancy/points" in dom and "opblock" in dom, dom[-2000:]
+
+
+@pytest.mark.skipif(
+    shutil.which("chromium") is None, reason="Debian chromium is not on PATH (make test installs it when run as root)"
+)
+def test_a_click_on_the_viewer_shows_the_analytic_probability_of_its_cell(server, tmp_path):
+    """The viewer's probe: a click asks /v1/occupancy/points (method analytic) for the clicked point's
+    cell at the view's resolution, and the status line shows what the API answers for it."""
+    shown = "document.getElementById('status').textContent"
+    read = f"{shown}.includes('p(occupied)') ? [document.body.dataset.probe, {shown}] : null"
+    answered, status = clicked(tmp_path, f"{server.url}/", (400, 300), read)
+    probe = json.loads(answered)
+    assert f"p(occupied) {probe['p']:.3f} at ({probe['x']:.2f}, {probe['y']:.2f})" in status, status
+    xy = f"{probe['x']},{probe['y']}"
+    _, _, body = get(f"{server.url}/v1/occupancy/points?xy={xy}&resolution={probe['resolution']}&method=analytic")
+    assert json.loads(body)["probabilities"] == [probe["p"]] and 0.0 <= probe["p"] <= 1.0
+    assert 0.005 <= probe["resolution"] <= 10
 
 
 @pytest.mark.skipif(

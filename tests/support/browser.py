@@ -122,16 +122,43 @@ def screenshot(tmp_path, url: str, until: str = VIEWER_SETTLED, timeout_s: float
     chromium draws it at 800 x 600: (600, 800, 3) int RGB."""
     deadline = time.monotonic() + timeout_s
     with DevTools(tmp_path) as browser:
-        target = browser.send("Target.createTarget", {"url": "about:blank"})["targetId"]
-        page = browser.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        metrics = {"width": 800, "height": 600, "deviceScaleFactor": 1, "mobile": False}
-        browser.send("Emulation.setDeviceMetricsOverride", metrics, page)
-        browser.send("Page.navigate", {"url": url}, page)
-        evaluate = {"expression": until, "returnByValue": True}
-        while browser.send("Runtime.evaluate", evaluate, page)["result"].get("value") is not True:
-            if time.monotonic() > deadline:
-                status = browser.send("Runtime.evaluate", {"expression": STATUS, "returnByValue": True}, page)
-                raise AssertionError(f"{until!r} not true in {timeout_s:g} s; the page says {status['result']}")
-            time.sleep(0.1)
+        page = _settled_page(browser, url, until, deadline)
         png = base64.b64decode(browser.send("Page.captureScreenshot", {"format": "png"}, page)["data"])
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+
+
+def clicked(tmp_path, url: str, at: tuple[int, int], read: str, timeout_s: float = 90):
+    """The value of the script `read` once it is not null, after a left click at pixel `at` (x, y)
+    of the page at `url` (800 x 600, clicked once the viewer has settled)."""
+    deadline = time.monotonic() + timeout_s
+    with DevTools(tmp_path) as browser:
+        page = _settled_page(browser, url, VIEWER_SETTLED, deadline)
+        for kind in ("mousePressed", "mouseReleased"):
+            event = {"type": kind, "x": at[0], "y": at[1], "button": "left", "buttons": 1, "clickCount": 1}
+            browser.send("Input.dispatchMouseEvent", event, page)
+        return _wait(browser, page, f"({read}) ?? null", lambda value: value is not None, deadline)
+
+
+def _settled_page(browser: DevTools, url: str, until: str, deadline: float) -> str:
+    """A new 800 x 600 page at `url`, once the script `until` holds there; its session id."""
+    target = browser.send("Target.createTarget", {"url": "about:blank"})["targetId"]
+    page = browser.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+    metrics = {"width": 800, "height": 600, "deviceScaleFactor": 1, "mobile": False}
+    browser.send("Emulation.setDeviceMetricsOverride", metrics, page)
+    browser.send("Page.navigate", {"url": url}, page)
+    _wait(browser, page, until, lambda value: value is True, deadline)
+    return page
+
+
+def _wait(browser: DevTools, page: str, script: str, done, deadline: float):
+    """The value of `script` on the page once done(value), polled every 0.1 s until the deadline."""
+    while not done(
+        value := browser.send("Runtime.evaluate", {"expression": script, "returnByValue": True}, page)["result"].get(
+            "value"
+        )
+    ):
+        if time.monotonic() > deadline:
+            status = browser.send("Runtime.evaluate", {"expression": STATUS, "returnByValue": True}, page)
+            raise AssertionError(f"{script!r} not done by the deadline; the page says {status['result']}")
+        time.sleep(0.1)
+    return value
