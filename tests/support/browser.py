@@ -152,13 +152,12 @@ def _settled_page(browser: DevTools, url: str, until: str, deadline: float) -> s
 
 def _wait(browser: DevTools, page: str, script: str, done, deadline: float):
     """The value of `script` on the page once done(value), polled every 0.1 s until the deadline."""
-    while not done(
-        value := browser.send("Runtime.evaluate", {"expression": script, "returnByValue": True}, page)["result"].get(
-            "value"
-        )
-    ):
+    evaluate = {"expression": script, "returnByValue": True}
+    while True:
+        value = browser.send("Runtime.evaluate", evaluate, page)["result"].get("value")
+        if done(value):
+            return value
         if time.monotonic() > deadline:
             status = browser.send("Runtime.evaluate", {"expression": STATUS, "returnByValue": True}, page)
             raise AssertionError(f"{script!r} not done by the deadline; the page says {status['result']}")
         time.sleep(0.1)
-    return value
