@@ -72,11 +72,17 @@ def query_grid(query: MapQuery) -> Grid:
         raise ProtocolError(error.field, error.message) from None
 
 
-def answer(state: ServerState, payload: bytes) -> bytes:
-    """MapQuery bytes -> MapReply bytes; ProtocolError or ValueError for a bad query."""
-    query = decode(payload, expect=MapQuery)
+def _query_of(state: ServerState, payload: bytes, kind: type):
+    """The query message of `kind` in `payload`, asked of this server's fleet; else ProtocolError."""
+    query = decode(payload, expect=kind)
     if query.fleet != state.fleet:
         raise ProtocolError("fleet", f"this server holds fleet {state.fleet}, not {query.fleet}")
+    return query
+
+
+def answer(state: ServerState, payload: bytes) -> bytes:
+    """MapQuery bytes -> MapReply bytes; ProtocolError or ValueError for a bad query."""
+    query = _query_of(state, payload, MapQuery)
     grid = query_grid(query)
     started = time.perf_counter()
     prob = state.fleet_map.occupancy(grid, query.robots)
@@ -87,9 +93,7 @@ def answer(state: ServerState, payload: bytes) -> bytes:
 def answer_points(state: ServerState, payload: bytes) -> bytes:
     """PointQuery bytes -> PointReply bytes, as `/v1/occupancy/points` answers (services/api/points.py:
     the same limits, auto's same choice); ProtocolError naming the field for a bad query."""
-    query = decode(payload, expect=PointQuery)
-    if query.fleet != state.fleet:
-        raise ProtocolError("fleet", f"this server holds fleet {state.fleet}, not {query.fleet}")
+    query = _query_of(state, payload, PointQuery)
     try:
         resolution = params.resolution(query.resolution)
         params.check_dimension(query.dim, state.fleet_map.dim, "points")
