@@ -236,14 +236,22 @@ def test_garbage_on_scan_and_pose_keys_is_counted_and_dropped(procs, session_to,
     assert metric(text, "gmmap_messages_rejected_total", kind="occupancy", reason="resolution") == 1
 
 
-def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path):
+@pytest.mark.parametrize("dim", [2, 3])
+def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path, dim):
     """A robot's point query over Zenoh (gmmap/<fleet>/map/points) gets what GET /v1/occupancy/points
-    gives for the same points and method, auto's choice included; a bad one an error naming the field."""
+    gives for the same points and method, auto's choice included, in 2D and 3D; a bad one an error
+    naming the field, counted."""
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     procs.server("server", data, zport, hport)
     session = session_to(zport)
     rng = np.random.default_rng(11)
-    # A wall at x = 3 m seen from three poses along y: hits on it, free space in front of it.
+    # A wall at x = 3 m (3D: 2 m high) seen from three poses along y: hits on it, free space before it.
+    across = np.linspace(-3, 3, 120)
+    wall = (
+        np.column_stack([np.full(120, 3.0), across])
+        if dim == 2
+        else np.array([[3.0, y, z] for y in across[::3] for z in np.linspace(-1, 1, 15)])
+    )
     acks = []
 
     def acked(node: int, raw: bytes) -> bool:
@@ -253,30 +261,31 @@ def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path):
     sub = session.declare_subscriber(ack_key("default", "w"), lambda s: acks.append(decode(s.payload.to_bytes())))
     try:
         for node, y in enumerate((-1.0, 0.0, 1.0)):
-            wall = np.column_stack([np.full(120, 3.0), np.linspace(-3, 3, 120) - y]) + rng.normal(0, 0.01, (120, 2))
-            model = fit_scan(wall, np.zeros((0, 2)))
-            raw = encode(ScanMessage("default", "w", node, float(node), model, Pose.from_xytheta(0.0, y, 0.0)))
+            seen = wall - np.eye(dim)[1] * y + rng.normal(0, 0.01, wall.shape)  # in the sensor's frame
+            model = fit_scan(seen, np.zeros((0, dim)))
+            pose = Pose(np.eye(dim), np.eye(dim)[1] * y)
+            raw = encode(ScanMessage("default", "w", node, float(node), model, pose))
             wait_for(lambda: acked(node, raw), 10, f"the Ack of scan {node}", interval=0.2)  # noqa: B023 - called here
     finally:
         sub.undeclare()
 
-    points = np.array([[3.0, 0.0], [1.5, 0.5], [-20.0, 20.0]])  # on the wall, in front of it, unseen
-    xy = ",".join(map(str, points.ravel().tolist()))
+    points = np.array([[3.0, 0.0, 0.0], [1.5, 0.5, 0.0], [-20.0, 20.0, 0.0]])[:, :dim]  # wall, before it, unseen
+    xy = ("xy=" if dim == 2 else "xyz=") + ",".join(map(str, points.ravel().tolist()))
     for method in ("auto", "analytic", "mc"):
         reply = query_points(session, "default", points, 0.1, method=method, timeout=30)
-        status, _, body = get(f"http://127.0.0.1:{hport}/v1/occupancy/points?xy={xy}&resolution=0.1&method={method}")
+        status, _, body = get(f"http://127.0.0.1:{hport}/v1/occupancy/points?{xy}&resolution=0.1&method={method}")
         assert status == 200, body
         served = json.loads(body)
         assert reply.method == served["method"] == ("mc" if method == "mc" else "analytic")  # 3 scattered points
         assert np.array_equal(reply.probabilities, np.array(served["probabilities"], dtype=np.float32))
         assert reply.probabilities[0] > 0.7 and reply.probabilities[1] < 0.3 and reply.probabilities[2] == 0.5
-    lattice = np.stack(np.meshgrid(np.arange(32) * 0.1 + 0.05, np.arange(32) * 0.1 + 0.05), -1).reshape(-1, 2)
+    lattice = (np.stack(np.meshgrid(*[np.arange(16)] * dim), -1).reshape(-1, dim) + 0.5) * 0.1
     assert query_points(session, "default", lattice, 0.1, ("w",), timeout=30).method == "mc"  # one grid for all
 
     for query, field in (
         (PointQuery("default", points, 0.001), "resolution"),
-        (PointQuery("default", np.zeros((2, 3)), 0.1), "points"),  # a 3D query of a 2D map
-        (PointQuery("default", rng.uniform(-50, 50, (1001, 2)), 0.1, None, "analytic"), "points"),
+        (PointQuery("default", np.zeros((2, 5 - dim)), 0.1), "points"),  # a 3D query of a 2D map, or 2D of 3D
+        (PointQuery("default", rng.uniform(-50, 50, (1001, dim)), 0.1, None, "analytic"), "points"),
         (PointQuery("other", points, 0.1), "fleet"),  # on this fleet's key
     ):
         replies = list(session.get(points_key("default"), payload=encode(query), timeout=30))
