@@ -27,9 +27,9 @@ import mine_map  # noqa: E402
 from query3d import RESOLUTION, machine_line  # noqa: E402
 from region_served import Served  # noqa: E402
 
+from protocol.messages import POINT_METHODS  # noqa: E402
 from services.agent.map_client import MapQueryError, query_points  # noqa: E402
 
-METHODS = ("auto", "analytic", "mc")
 REACH = 10.0  # m around the last robot
 
 
@@ -57,7 +57,7 @@ def main() -> None:
         try:
             served.fill(messages, updates)
             for name, points in sets.items():
-                for method in METHODS:
+                for method in POINT_METHODS:
                     try:
                         first, ran = timed(served, points, method)
                     except MapQueryError as refused:  # beyond a request's limits: the server says so
