@@ -5,13 +5,14 @@ Tests under tests/integration/ (processes, Zenoh, HTTP, Chromium, compose) are m
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
 import zenoh
 
 from services.zenoh_config import zenoh_config
-from support.numba_cache import drop_stale_kernels
+from support.numba_cache import compile_kernels, drop_stale_kernels, kernels_cached
 from support.paths import DATA, ROOT
 from support.processes import TestProcesses
 
@@ -24,6 +25,9 @@ def pytest_configure(config):
     cache = getattr(config, "cache", None)
     if cache is not None and not hasattr(config, "workerinput"):  # once, before pytest-xdist's workers start
         cache.set(NUMBA_DIGEST, drop_stale_kernels(ROOT, cache.get(NUMBA_DIGEST, None)))
+        # With pytest-xdist's workers (`make test`): alone, a process compiles only what its tests call.
+        if getattr(config.option, "numprocesses", None) and not kernels_cached(ROOT):
+            print(f"numba's kernels compiled before the tests in {compile_kernels(ROOT):.0f} s", file=sys.stderr)
 
 
 def pytest_collection_modifyitems(items):

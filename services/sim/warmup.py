@@ -17,11 +17,16 @@ from services.sim.fleet import SimulatedFleet
 
 
 def warm_fleet_kernels(world: str, fit: FitConfig, encoding: str) -> float:
-    """A map server's kernels (warm_kernels) and a simulated robot's in `world`: its sensor, the
-    fit of one scan with `fit` and its encoding; returns the seconds it took."""
+    """A map server's kernels (warm_kernels) and a simulated robot's (warm_robot_kernels); returns
+    the seconds it took."""
     start = time.perf_counter()
     warm_kernels()
+    warm_robot_kernels(world, fit, encoding)
+    return time.perf_counter() - start
+
+
+def warm_robot_kernels(world: str, fit: FitConfig, encoding: str) -> None:
+    """A simulated robot's kernels in `world`: its sensor, the fit of one scan with `fit` and its encoding."""
     scan = next(SimulatedFleet(world, robots=1, scans=2).scans(0, correct_every=0))
     model = fit_scan(scan.hits, scan.no_return, fit.for_dimension(scan.pose.dim))
     encode(ScanMessage("warm-up", "r", 0, scan.stamp, model, scan.pose), encoding)
-    return time.perf_counter() - start

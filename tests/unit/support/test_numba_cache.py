@@ -1,6 +1,6 @@
 """Cached numba kernels are dropped when a numba module changed since the last session, kept otherwise."""
 
-from support.numba_cache import drop_stale_kernels
+from support.numba_cache import drop_stale_kernels, kernels_cached
 
 
 def test_cached_kernels_are_dropped_only_when_a_numba_module_changed(tmp_path):
@@ -17,8 +17,9 @@ def test_cached_kernels_are_dropped_only_when_a_numba_module_changed(tmp_path):
             path.write_bytes(b"kernel")
 
     cache_kernels()
+    assert kernels_cached(tmp_path)
     digest = drop_stale_kernels(tmp_path, None)  # no earlier session: whatever is cached may be stale
-    assert not any(path.exists() for path in cached)
+    assert not any(path.exists() for path in cached) and not kernels_cached(tmp_path)
     cache_kernels()
     assert drop_stale_kernels(tmp_path, digest) == digest and all(path.exists() for path in cached)
     plain.write_text("x = 2\n")  # no numba in it: the kernels stay
