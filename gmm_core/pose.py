@@ -171,3 +171,11 @@ def poses_from_arrays(R: np.ndarray, t: np.ndarray) -> list[Pose]:
         object.__setattr__(pose, "t", translation)
         poses.append(pose)
     return poses
+
+
+def poses_from_xytheta(xytheta: np.ndarray) -> list[Pose]:
+    """Pose.from_xytheta of each row (x, y, theta) of an (n, 3) array, built at once
+    (poses_from_arrays): a CARMEN log's reader makes two poses a scan, 27,000 for Intel's raw log."""
+    xytheta = np.asarray(xytheta, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(xytheta[:, 2]), np.sin(xytheta[:, 2])
+    return poses_from_arrays(np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1), xytheta[:, :2])

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmm_core.pose import Pose
+from gmm_core.pose import poses_from_xytheta
 
 from .common import DatasetError, RangeScan, classify_beams, read_text
 
@@ -117,14 +117,15 @@ def read_carmen(path: str | Path, *, no_return_range: float | None = None) -> It
 
 
 def _scans(log: FlaserLog, no_return_range: float | None) -> Iterator[RangeScan]:
+    poses, odom = poses_from_xytheta(log.poses), poses_from_xytheta(log.odom)
     for i, ranges in enumerate(log.ranges):
         directions = beam_directions(len(ranges))
         hit, miss = classify_beams(ranges, 0.0, no_return_range)
         yield RangeScan(
             index=i,
             stamp=float(log.stamps[i]),
-            pose=Pose.from_xytheta(*log.poses[i]),
-            odom_pose=Pose.from_xytheta(*log.odom[i]),
+            pose=poses[i],
+            odom_pose=odom[i],
             hits=directions[hit] * ranges[hit, None],
             no_return=directions[miss],
         )

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from gmm_core.pose import Pose, displacements, poses_from_arrays, slerp
+from gmm_core.pose import Pose, displacements, poses_from_arrays, poses_from_xytheta, slerp
 from support.fuzz import random_rotations
 
 
@@ -65,6 +65,16 @@ def test_poses_from_arrays_builds_and_refuses_what_pose_does(dim):
         assert [(p.R.tobytes(), p.t.tobytes()) for p in many] == [(p.R.tobytes(), p.t.tobytes()) for p in one_by_one]
     with pytest.raises(ValueError, match="must be"):
         poses_from_arrays(np.zeros((2, 3, 3)), np.zeros((2, 2)))
+
+
+def test_poses_from_xytheta_are_pose_from_xytheta_of_each_row():
+    rows = np.random.default_rng(0).normal(size=(200, 3)) * [50, 50, 4]
+    many = poses_from_xytheta(rows)
+    one_by_one = [Pose.from_xytheta(*row) for row in rows]
+    assert [(p.R.tobytes(), p.t.tobytes()) for p in many] == [(p.R.tobytes(), p.t.tobytes()) for p in one_by_one]
+    assert poses_from_xytheta(np.zeros((0, 3))) == []
+    with pytest.raises(ValueError, match="non-finite"):
+        poses_from_xytheta([[0.0, 0.0, np.nan]])
 
 
 @pytest.mark.parametrize("dim", [2, 3])
