@@ -30,7 +30,7 @@ from services.map_server.tokens import TokenFile
 from services.render import top_down_classes
 from support.http_auth import write_tokens
 from support.net import get, metric, wait_for
-from support.octomap_trees import node_log_odds
+from support.octomap_trees import class_log_odds, nodes_log_odds
 from support.paths import ROOT
 from support.ros_maps import grid_values, map_server_load
 from support.saturation import saturated_tracers
@@ -121,15 +121,14 @@ def test_every_format_of_a_3d_server(server_3d, kurt3d_map, tmp_path):
     body = (tmp_path / "kurt3d.bt").read_bytes()
     assert body == bt_bytes(prob, grid, 0.21)
     tree = octomap.OcTree(str(tmp_path / "kurt3d.bt").encode())  # OctoMap's readBinary
-    log_odds = {OCCUPIED: tree.getClampingThresMaxLog(), FREE: tree.getClampingThresMinLog(), UNKNOWN: None}
-    for centre, cls in zip(grid.cell_centers(), classes.ravel()):
-        assert node_log_odds(tree, centre) == pytest.approx(log_odds[cls])
+    expected = class_log_odds(tree, classes.ravel(), OCCUPIED, FREE)
+    np.testing.assert_allclose(nodes_log_odds(tree, grid.cell_centers()), expected, rtol=1e-6)  # NaN: NaN
     box = ",".join(repr(float(v)) for v in (*lo, *hi))
     status, headers, served = get(f"{server_3d.url}/v1/occupancy?bbox={box}&resolution=0.25&format=bt")
     assert status == 200 and served == body
     full = octomap.OcTree.read(str(tmp_path / "kurt3d.ot").encode())  # OctoMap's read: the MAP log-odds
-    for centre, p, cls in zip(grid.cell_centers(), prob.ravel(), classes.ravel()):
-        assert node_log_odds(full, centre) == (None if cls == UNKNOWN else pytest.approx(np.log(p / (1 - p)), rel=1e-5))
+    expected = np.where(classes.ravel() == UNKNOWN, np.nan, np.log(prob.ravel() / (1 - prob.ravel())))
+    np.testing.assert_allclose(nodes_log_odds(full, grid.cell_centers()), expected, rtol=1e-5)
     status, headers, served = get(f"{server_3d.url}/v1/occupancy?bbox={box}&resolution=0.25&format=ot")
     assert status == 200 and served == (tmp_path / "kurt3d.ot").read_bytes()
     whole = Grid.from_bbox(extent["lo"], extent["hi"], 0.25)  # pgm and ply: the extent as it is

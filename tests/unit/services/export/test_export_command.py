@@ -7,10 +7,10 @@ from PIL import Image
 from plyfile import PlyData
 
 from gmm_core import Grid
-from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, classify
+from gmm_core.occupancy import FREE, OCCUPIED, classify
 from services.cli import main
 from services.export.octomap_tree import lattice_offset
-from support.octomap_trees import node_log_odds
+from support.octomap_trees import class_log_odds, nodes_log_odds
 
 octomap = pytest.importorskip("octomap", reason="octomap-python is in the [bench] and [dev] extras")
 
@@ -72,9 +72,8 @@ def test_bt_from_a_3d_npz(kurt3d_npz, tmp_path, capsys):
     assert tree.getResolution() == 0.5
     classes = classify(prob, 0.21).ravel()
     assert (classes == OCCUPIED).sum() > 50 and (classes == FREE).sum() > 500
-    log_odds = {OCCUPIED: tree.getClampingThresMaxLog(), FREE: tree.getClampingThresMinLog(), UNKNOWN: None}
-    for centre, cls in zip(grid.cell_centers() - lattice_offset(grid), classes):  # each cell's voxel
-        assert node_log_odds(tree, centre) == pytest.approx(log_odds[cls])
+    voxels = grid.cell_centers() - lattice_offset(grid)  # each cell's voxel
+    np.testing.assert_allclose(nodes_log_odds(tree, voxels), class_log_odds(tree, classes, OCCUPIED, FREE), rtol=1e-6)
 
 
 @pytest.mark.parametrize(
