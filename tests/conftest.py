@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from services.sim.warmup import kernels_cached
 from services.zenoh_config import zenoh_config
-from support.numba_cache import compile_kernels, drop_stale_kernels, kernels_cached
+from support.numba_cache import compile_kernels, drop_stale_kernels
 from support.paths import DATA, ROOT
 from support.processes import TestProcesses
 

@@ -21,11 +21,13 @@ import sys
 import time
 from pathlib import Path
 
+from services.sim.warmup import SERVER_WARM_UP
+
 PACKAGES = ("gmm_core", "services", "protocol")
 # Each compiles a share of the kernels in a process of its own: a map server's (2D and 3D: 61 s on
 # an empty cache on the EPYC) and a simulated robot's in a 2D and a 3D world (54 and 58 s).
 WARM_UPS = (
-    "from services.map_server.warmup import warm_kernels; warm_kernels()",
+    SERVER_WARM_UP,
     *(
         "from gmm_core import FitConfig; from services.sim.warmup import warm_robot_kernels; "
         f"warm_robot_kernels({world!r}, FitConfig(), 'q')"
@@ -53,11 +55,6 @@ def drop_stale_kernels(root: Path, previous: str | None) -> str:
             for cached in (root / package).rglob("__pycache__/*.nb[ic]"):
                 cached.unlink(missing_ok=True)
     return current
-
-
-def kernels_cached(root: Path) -> bool:
-    """Whether numba's cache holds kernels of the core (none after drop_stale_kernels dropped them)."""
-    return any((root / "gmm_core").rglob("__pycache__/*.nbi"))
 
 
 def compile_kernels(root: Path) -> float:

@@ -1,6 +1,7 @@
 """Cached numba kernels are dropped when a numba module changed since the last session, kept otherwise."""
 
-from support.numba_cache import drop_stale_kernels, kernels_cached
+from services.sim.warmup import kernels_cached
+from support.numba_cache import drop_stale_kernels
 
 
 def test_cached_kernels_are_dropped_only_when_a_numba_module_changed(tmp_path):
