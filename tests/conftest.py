@@ -28,7 +28,7 @@ def pytest_configure(config):
         cache.set(NUMBA_DIGEST, drop_stale_kernels(ROOT, cache.get(NUMBA_DIGEST, None)))
         # With pytest-xdist's workers (`make test`): alone, a process compiles only what its tests call.
         if getattr(config.option, "numprocesses", None) and not kernels_cached(ROOT):
-            print(f"numba's kernels compiled before the tests in {compile_kernels(ROOT):.0f} s", file=sys.stderr)
+            print(f"numba's kernels compiled before the tests in {compile_kernels():.0f} s", file=sys.stderr)
 
 
 def pytest_collection_modifyitems(items):

@@ -36,18 +36,26 @@ def warm_fleet_kernels(world: str, fit: FitConfig, encoding: str) -> float:
     server's in a process of its own meanwhile when the cache is empty; returns the seconds it took.
     RuntimeError with that process's output if it fails."""
     start = time.perf_counter()
-    server = None
-    if not kernels_cached():
-        server = subprocess.Popen(
-            [sys.executable, "-c", SERVER_WARM_UP], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
-        )
+    server = None if kernels_cached() else start_warm_up(SERVER_WARM_UP)
     warm_robot_kernels(world, fit, encoding)
     if server is not None:
-        output, _ = server.communicate()
-        if server.returncode != 0:
-            raise RuntimeError(f"the map server's kernels did not compile:\n{output.decode(errors='replace')}")
+        finish_warm_up(server)
     warm_kernels()  # loaded from the cache where that process compiled them
     return time.perf_counter() - start
+
+
+def start_warm_up(code: str) -> subprocess.Popen:
+    """`python -c code` in a process of its own (a warm-up: its kernels go to numba's cache)."""
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def finish_warm_up(process: subprocess.Popen) -> None:
+    """Wait for a start_warm_up process; RuntimeError with its command and output if it failed."""
+    output, _ = process.communicate()
+    if process.returncode != 0:
+        raise RuntimeError(
+            f"warm-up {process.args!r} failed ({process.returncode}):\n{output.decode(errors='replace')}"
+        )
 
 
 def warm_robot_kernels(world: str, fit: FitConfig, encoding: str) -> None:

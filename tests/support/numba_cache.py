@@ -16,12 +16,10 @@ test waits for it to be ready (docs/BENCHMARKS.md, twenty-sixth session).
 from __future__ import annotations
 
 import hashlib
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-from services.sim.warmup import SERVER_WARM_UP
+from services.sim.warmup import SERVER_WARM_UP, finish_warm_up, start_warm_up
 
 PACKAGES = ("gmm_core", "services", "protocol")
 # Each compiles a share of the kernels in a process of its own: a map server's (2D and 3D: 61 s on
@@ -57,16 +55,10 @@ def drop_stale_kernels(root: Path, previous: str | None) -> str:
     return current
 
 
-def compile_kernels(root: Path) -> float:
-    """Run WARM_UPS side by side in `root`, so that numba's cache holds their kernels; returns the
-    seconds it took. RuntimeError with a warm-up's output if one fails."""
+def compile_kernels() -> float:
+    """Run WARM_UPS side by side, so that numba's cache holds their kernels; returns the seconds it
+    took. RuntimeError with a warm-up's output if one fails."""
     start = time.perf_counter()
-    runs = [
-        subprocess.Popen([sys.executable, "-c", code], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        for code in WARM_UPS
-    ]
-    for code, run in zip(WARM_UPS, runs):
-        output, _ = run.communicate()
-        if run.returncode != 0:
-            raise RuntimeError(f"numba warm-up {code!r} failed ({run.returncode}):\n{output.decode(errors='replace')}")
+    for process in [start_warm_up(code) for code in WARM_UPS]:
+        finish_warm_up(process)
     return time.perf_counter() - start
