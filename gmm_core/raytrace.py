@@ -35,6 +35,7 @@ BLOCK = 4  # cells along each side of the blocks that rays are ordered by (2 to 
 # with 10 m rays in random directions, sorting gained 1.1x on 168k cells (2D, 0.05 m), 1.7x on
 # 551k cells (3D, 0.25 m) and 2.7x on 8.6M (3D, 0.1 m).
 SORT_MIN_CELLS = 2**17
+MAX_CELLS = 2**31 - 1  # a traced grid's cells are numbered in 32 bits (_enter)
 MARGIN = 2  # cells added to each side of a chunk's slab: the traversal's round-off stays within one
 END, WEIGHT, CODE = 0, 3, 4  # columns of a ray record: end x, y, z; weight; 2 * origin index + is_hit
 
@@ -139,13 +140,15 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
     for and overwrites or ignores."""
     # Indexed from an unsigned base, not through a view cells[at:]: no wrap-around of negative
     # indices, so the stores vectorise, and no view is made (three views cost about 40 ns of a
-    # ray's 130-340 ns, docs/BENCHMARKS.md).
+    # ray's 130-340 ns, docs/BENCHMARKS.md). Cells are 32-bit and k counts in 32 bits: AVX2 has
+    # packed conversions between float64 and int32 only, and with 64-bit ones the loop converted
+    # lane by lane (the trace took 1.4-1.9x as long on an AVX2 EPYC, docs/BENCHMARKS.md).
     base = np.uint64(at)
-    for k in range((n + 3) & -4):
-        kf = np.float64(k)
+    for k in range(np.int32((n + 3) & -4)):
+        kf = np.float64(np.int32(k))
         b = min(max(np.floor(ub + kf * dub), lob), hib)
         c = min(max(np.floor(uc + kf * duc), loc), hic)
-        cells[base + np.uint64(k)] = np.uint64(flat + kf * step + b * stride_b + c * stride_c)
+        cells[base + np.uint64(k)] = np.uint32(np.int32(flat + kf * step + b * stride_b + c * stride_c))
     return at + n
 
 
@@ -178,7 +181,7 @@ def _trace_ray(ox, oy, oz, ex, ey, ez, w, is_hit, grid_origin, to_cells, dims, l
         z = z_last = np.int64(lo[2])
     n_x, n_y, n_z = abs(x_last - x), abs(y_last - y), abs(z_last - z)
     tx, ty, tz = (bx - uox) * ix, (by - uoy) * iy, (bz - uoz) * iz  # t of the first boundaries
-    cells[0] = (z * ny + y) * nx + x - offset
+    cells[0] = np.uint32((z * ny + y) * nx + x - offset)
     at = _enter(
         cells,
         1,
@@ -263,7 +266,7 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
     of hits and misses, which hold the cells of `box` along the slowest axis."""
     lo, hi = box_bounds(box)
     to_cells = 1.0 / resolution
-    cells = np.empty(dims[0] + dims[1] + dims[2] + 4, np.uint64)  # start cell, crossings, _enter's 3 of scratch
+    cells = np.empty(dims[0] + dims[1] + dims[2] + 4, np.uint32)  # start cell, crossings, _enter's 3 of scratch
     for r in range(first_ray, last_ray):
         code = np.int64(rays[r, CODE])
         o = code >> 1
@@ -352,6 +355,12 @@ def _counts(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution,
     return hits, misses
 
 
+def check_cells(grid: Grid) -> None:
+    """Refuse a grid whose cells 32-bit indices cannot number (the tracer's limit, MAX_CELLS)."""
+    if grid.n_cells > MAX_CELLS:
+        raise ValueError(f"grid: {grid.n_cells} cells is more than the {MAX_CELLS} a trace can number")
+
+
 def _as_3d(points: np.ndarray, dim: int, z: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64).reshape(-1, dim)
     if dim == 3:
@@ -379,6 +388,7 @@ def trace_rays(
     `threads`: numba's threads (default: numba.get_num_threads()); 1 traces on the calling
     thread, safe to call from several threads at once (the threading layer may not be).
     """
+    check_cells(grid)
     d = grid.dim
     z_mid = 0.5 * grid.resolution  # 2D: rays run along the mid-plane of a one-cell-thick grid
     grid_origin = _as_3d(grid.origin, d, 0.0)[0]

@@ -20,7 +20,7 @@ from numba import njit
 
 from gmm_core.grid import Grid
 from gmm_core.pose import Pose
-from gmm_core.raytrace import _trace_ray
+from gmm_core.raytrace import _trace_ray, check_cells
 from gmm_core.sampling import BOX_SLACK, Z_MAX, MixtureSamples, ScanSamples, sample_normals
 
 
@@ -42,7 +42,7 @@ def _trace_mixture(
     (a 2D grid is one cell thick, its rays run at mid-height). Returns the samples traced."""
     d = means.shape[1]
     lo, hi = np.zeros(3), dims - 1.0  # every cell of the grid: _trace_ray's slab bounds
-    cells = np.empty(dims[0] + dims[1] + dims[2] + 4, np.uint64)
+    cells = np.empty(dims[0] + dims[1] + dims[2] + 4, np.uint32)
     z, p, q, o = np.empty(d), np.empty(d), np.empty(3), np.empty(3)
     q[2] = o[2] = 0.5 * (grid_lo[2] + grid_hi[2])  # 2D: the mid-plane
     for a in range(d):
@@ -124,6 +124,7 @@ class GridCounts:
     """Float64 hit and miss counts on a grid, to which scans' rays are added (`add`)."""
 
     def __init__(self, grid: Grid):
+        check_cells(grid)
         self.grid = grid
         d = grid.dim
         # The tracer's 3D form: a 2D grid is a 3D grid one cell thick.

@@ -112,6 +112,13 @@ def test_chunks_match_brute_force_and_each_other(dim, big):
     assert np.array_equal(serial[0], counts[0][0]) and np.array_equal(serial[1], counts[0][1])
 
 
+def test_a_grid_beyond_32_bit_cell_numbers_is_refused():
+    grid = Grid(np.zeros(3), 0.1, (2048, 2048, 512))  # 2^31 cells: none is allocated before the check
+    assert grid.n_cells == raytrace.MAX_CELLS + 1
+    with pytest.raises(ValueError, match="grid: 2147483648 cells"):
+        trace_rays(grid, np.zeros((1, 3)), np.zeros(1, int), np.ones((1, 3)), np.ones(1), np.ones(1, bool))
+
+
 def chunked(grid, origins, ray_origin, ends, weights, is_hit, n_chunks):
     """`trace_rays` with the rays split into n_chunks, whatever the machine's thread count."""
     d = grid.dim

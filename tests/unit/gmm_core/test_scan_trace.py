@@ -103,6 +103,11 @@ def test_a_scan_taken_out_again_leaves_the_counts_bit_for_bit():
     assert np.array_equal(updated.hits, fresh.hits) and np.array_equal(updated.misses, fresh.misses)
 
 
+def test_counts_on_a_grid_beyond_32_bit_cell_numbers_are_refused_before_allocating():
+    with pytest.raises(ValueError, match="grid: 2147483648 cells"):
+        GridCounts(Grid(np.zeros(3), 0.1, (2048, 2048, 512)))
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_samples_are_normal_within_the_clipped_box(dim):
     """Mean and covariance of many samples of one component match it, and each stays in its box."""
