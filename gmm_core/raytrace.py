@@ -153,10 +153,14 @@ def _enter(cells, at, n, flat, step, ub, dub, lob, hib, stride_b, uc, duc, loc, 
 
 
 @njit(cache=True, inline="always", error_model="numpy")  # 1 / 0 is inf: an axis the ray does not move along
-def _trace_ray(ox, oy, oz, ex, ey, ez, w, is_hit, grid_origin, to_cells, dims, lo, hi, offset, cells, hits, misses):
+def _trace_ray(
+    ox, oy, oz, ex, ey, ez, w, is_hit, skip_start, grid_origin, to_cells, dims, lo, hi, offset, cells, hits, misses
+):
     """Trace one ray (ox, oy, oz) -> (ex, ey, ez) of weight w: cell (x, y, z) of the grid is entry
     (z ny + y) nx + x - offset of hits and misses, which hold the cells [lo, hi] (float, inclusive)
-    along the slowest axis; `cells`: scratch of nx + ny + nz + 4 entries."""
+    along the slowest axis; `cells`: scratch of nx + ny + nz + 4 entries. `skip_start`: the cell
+    of the start point gains nothing when that point is inside the grid (the ray entered that cell
+    before it: a segment of a longer ray, gmm_core.scan_trace)."""
     nx, ny, nz = dims[0], dims[1], dims[2]
     sy, sz = np.float64(nx), np.float64(nx * ny)  # strides of y and z in the flat index
     # Cell units: the grid is [0, n) along each axis and the ray is u(t) = uo + t ud, t in [0, 1].
@@ -243,7 +247,10 @@ def _trace_ray(ox, oy, oz, ex, ey, ez, w, is_hit, grid_origin, to_cells, dims, l
     end = n_x if x_ends else (n_x + n_y if y_ends else at - 1)
     end_cell = cells[end]
     cells[end] = cells[at - 1]
-    for i in range(at - 1):
+    skip = skip_start and t0 == 0.0  # a start point outside: the grid is entered on this ray
+    if skip and at == 1:  # no boundary crossed: the end cell is the start cell
+        w = 0.0
+    for i in range(np.int64(skip), at - 1):
         misses[cells[i]] += w
     # The end cell holds the sample only when the ray ends inside the grid (t1 == 1).
     h = w if is_hit and t1 >= 1.0 else 0.0
@@ -279,6 +286,7 @@ def _trace_chunk(origins, rays, first_ray, last_ray, grid_origin, resolution, di
             rays[r, END + 2],
             rays[r, WEIGHT],
             code & 1,
+            False,
             grid_origin,
             to_cells,
             dims,
