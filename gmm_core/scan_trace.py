@@ -17,8 +17,8 @@ ray is traced as one segment per level it takes part in (sample 0 in every level
 A component is drawn only when its rays can reach the grid: every sample of it lies in a box
 known beforehand (the normals are clipped), every ray in the box spanned by that box and the
 sensor origin, and a component whose box misses the grid is skipped without drawing it. This is
-exact: the counts are those of tracing every sample. A 20 x 20 x 4 m region of a 3D map skips
-about half of the samples of the scans that reach it (docs/BENCHMARKS.md).
+exact: the counts are those of tracing every sample (thinned alike). A 20 x 20 x 4 m region of a
+3D map skips about half of the samples of the scans that reach it (docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
