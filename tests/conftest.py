@@ -11,24 +11,28 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.sim.warmup import kernels_cached
 from services.zenoh_config import zenoh_config
-from support.numba_cache import compile_kernels, drop_stale_kernels
+from support.numba_cache import compile_kernels, drop_stale_kernels, precompile_needed
 from support.paths import DATA, ROOT
 from support.processes import TestProcesses
 
 INTEGRATION = Path(__file__).parent / "integration"
 NUMBA_DIGEST = "gmmap/numba-sources"  # pytest's cache key: the numba modules' digest of the last session
+PRECOMPILED = "gmmap/numba-precompiled"  # ... and the digest the kernels were last compiled before the tests for
 
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "integration: starts processes, Zenoh sessions, HTTP servers or a browser")
     cache = getattr(config, "cache", None)
     if cache is not None and not hasattr(config, "workerinput"):  # once, before pytest-xdist's workers start
-        cache.set(NUMBA_DIGEST, drop_stale_kernels(ROOT, cache.get(NUMBA_DIGEST, None)))
+        digest = drop_stale_kernels(ROOT, cache.get(NUMBA_DIGEST, None))
+        cache.set(NUMBA_DIGEST, digest)
         # With pytest-xdist's workers (`make test`): alone, a process compiles only what its tests call.
-        if getattr(config.option, "numprocesses", None) and not kernels_cached(ROOT):
+        if getattr(config.option, "numprocesses", None) and precompile_needed(
+            ROOT, digest, cache.get(PRECOMPILED, None)
+        ):
             print(f"numba's kernels compiled before the tests in {compile_kernels():.0f} s", file=sys.stderr)
+            cache.set(PRECOMPILED, digest)
 
 
 def pytest_collection_modifyitems(items):

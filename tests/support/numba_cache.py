@@ -19,7 +19,7 @@ import hashlib
 import time
 from pathlib import Path
 
-from services.sim.warmup import SERVER_WARM_UP, finish_warm_up, start_warm_up
+from services.sim.warmup import SERVER_WARM_UP, finish_warm_up, kernels_cached, start_warm_up
 
 PACKAGES = ("gmm_core", "services", "protocol")
 # Each compiles a share of the kernels in a process of its own: a map server's (2D and 3D: 61 s on
@@ -53,6 +53,14 @@ def drop_stale_kernels(root: Path, previous: str | None) -> str:
             for cached in (root / package).rglob("__pycache__/*.nb[ic]"):
                 cached.unlink(missing_ok=True)
     return current
+
+
+def precompile_needed(root: Path, digest: str, precompiled: str | None) -> bool:
+    """Whether a session with pytest-xdist's workers should compile_kernels first: the cache is empty,
+    or the last precompile was for other sources (`precompiled`, the digest then). A session without
+    workers after a change compiles only what its tests call and leaves the cache partial; the
+    servers of the next session would compile the rest during their tests (116 s for one of them)."""
+    return not kernels_cached(root) or precompiled != digest
 
 
 def compile_kernels() -> float:

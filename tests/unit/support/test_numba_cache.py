@@ -1,7 +1,7 @@
 """Cached numba kernels are dropped when a numba module changed since the last session, kept otherwise."""
 
 from services.sim.warmup import kernels_cached
-from support.numba_cache import drop_stale_kernels
+from support.numba_cache import drop_stale_kernels, precompile_needed
 
 
 def test_cached_kernels_are_dropped_only_when_a_numba_module_changed(tmp_path):
@@ -27,3 +27,13 @@ def test_cached_kernels_are_dropped_only_when_a_numba_module_changed(tmp_path):
     assert drop_stale_kernels(tmp_path, digest) == digest and all(path.exists() for path in cached)
     kernels.write_text("from numba import njit  # changed\n")
     assert drop_stale_kernels(tmp_path, digest) != digest and not any(path.exists() for path in cached)
+
+
+def test_kernels_are_compiled_first_unless_they_were_for_these_sources(tmp_path):
+    kernels = tmp_path / "gmm_core" / "__pycache__" / "kernels.f-1.py311.nbi"
+    assert precompile_needed(tmp_path, "a", "a")  # an empty cache
+    kernels.parent.mkdir(parents=True)
+    kernels.write_bytes(b"kernel")
+    assert not precompile_needed(tmp_path, "a", "a")
+    assert precompile_needed(tmp_path, "b", "a")  # a partial cache: a session without workers since a change
+    assert precompile_needed(tmp_path, "a", None)  # never compiled first here
