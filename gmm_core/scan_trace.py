@@ -14,6 +14,9 @@ component's, so the expected counts are unchanged (the estimate stays unbiased),
 traced, and a 3D region of the mine map crosses 1.8x fewer cells (docs/BENCHMARKS.md). A sample's
 ray is traced as one segment per level it takes part in (sample 0 in every level, to the sensor).
 2D rays are traced whole: a section grows only as t there, and thinning gained 1.15x on a tile.
+Thinning further by the distance from the sample (half the samples per doubling beyond 1 m) crossed
+2.7x fewer cells of the mine region but lost as much AUROC as fewer samples per cell do, for 1.1x
+(docs/BENCHMARKS.md, twenty-eighth session): the misses far from a sample are not spare.
 
 A component is drawn only when its rays can reach the grid: every sample of it lies in a box
 known beforehand (the normals are clipped), every ray in the box spanned by that box and the
