@@ -85,7 +85,7 @@ def merge_workload() -> tuple[object, Callable[[], None]]:
     costed = rings.with_footprint(sums, -shift, rings.ring_spacing(points))
     eu, ev = voxel_merge._voxel_edges(keys, config.voxel_size, config.voxel_near_range)
     inputs = [(costed.copy(), eu.copy(), ev.copy()) for _ in range(301)]  # _merge changes its inputs
-    voxel_merge._merge(*inputs.pop(), k, config.reg_covar)  # compiled or loaded before perf counts
+    voxel_merge._merge(*inputs.pop(), k, config.reg_covar)  # compiled or loaded: dump_kernel reads its code
 
     def run() -> None:
         for c, u, v in inputs:
@@ -126,7 +126,7 @@ def sampled_addresses(perf_data: Path) -> tuple[collections.Counter, float]:
 
 
 def mnemonics(folder: Path, lo: int) -> dict[int, str]:
-    """The first mnemonic of each instruction of code.bin, by address."""
+    """The first mnemonic of each instruction of code.bin, by address (in address order, as objdump lists them)."""
     listing = subprocess.run(
         ["objdump", "-D", "-b", "binary", "-m", "i386:x86-64", f"--adjust-vma={lo}", str(folder / "code.bin")],
         capture_output=True,
@@ -159,7 +159,7 @@ def report(folder: Path, top: int) -> None:
     print("\n| share of the kernel's samples | offset from the kernel's entry | instructions |\n|---|---|---|")
     for offset, p in windows.most_common(top):
         first = kernel["start"] + offset
-        names = [ops[a] for a in sorted(ops) if first <= a < first + WINDOW]
+        names = [name for a, name in ops.items() if first <= a < first + WINDOW]
         print(f"| {100 * p / total:.1f} % | {offset:+#x} | {' '.join(names)} |")
 
 
