@@ -316,22 +316,15 @@ def _trace(origins, rays, grid_origin, resolution, dims, sorted_, n_chunks, hits
     n_rays = rays.shape[0]
     for c in prange(n_chunks):
         first, last = n_rays * c // n_chunks, n_rays * (c + 1) // n_chunks
-        if c == 0:
-            _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c], 0, hits, misses)
+        if c == 0:  # into the grid itself
+            h, m, offset = hits, misses, 0
         else:
-            _trace_chunk(
-                origins,
-                rays,
-                first,
-                last,
-                grid_origin,
-                resolution,
-                dims,
-                boxes[c],
-                boxes[c, 0, axis] * stride,
+            h, m, offset = (
                 hit_buffer[start[c] : start[c + 1]],
                 miss_buffer[start[c] : start[c + 1]],
+                boxes[c, 0, axis] * stride,
             )
+        _trace_chunk(origins, rays, first, last, grid_origin, resolution, dims, boxes[c], offset, h, m)
     for c in range(1, n_chunks):
         cells = slice(boxes[c, 0, axis] * stride, boxes[c, 1, axis] * stride)
         hits[cells] += hit_buffer[start[c] : start[c + 1]]
@@ -344,7 +337,8 @@ def _trace_serial(origins, rays, grid_origin, resolution, dims, hits, misses):
     from threads of their own (a map server's requests) need no lock around it."""
     box = np.zeros((2, 3), np.int64)
     box[1] = dims
-    _trace_chunk(origins, rays, 0, rays.shape[0], grid_origin, resolution, dims, box, 0, hits, misses)
+    zero = np.int64(0)  # not the literal 0, which numba would compile _trace_chunk once more for
+    _trace_chunk(origins, rays, zero, rays.shape[0], grid_origin, resolution, dims, box, zero, hits, misses)
 
 
 def _counts(origins, ray_origin, ends, weights, is_hit, grid_origin, resolution, dims, n_chunks):

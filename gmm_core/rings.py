@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from gmm_core.selection import median
+
 _BIN = np.radians(0.02)  # elevation histogram bins: narrower than a ring's spread (0.2-0.3 deg at BALM)
 _RING_GAP = np.radians(0.2)  # a gap at least this wide between elevations separates two rings
 _SAMPLE = 8192  # points whose elevation is read: about 130 a ring for 64 rings
@@ -84,7 +86,7 @@ def ring_spacing(points):
             in_pairs += held[c]
     if n_pairs < _MIN_RING_PAIRS or in_pairs < _MIN_RING_SHARE * sampled:
         return 0.0
-    return np.median(gaps[:n_pairs]) * _BIN
+    return median(gaps[:n_pairs]) * _BIN
 
 
 @njit(cache=True)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from gmm_core.selection import kth_smallest
 from gmm_core.voxels import _FAR_BIT, _KEY_BITS, _KEY_OFFSET, _lookup, _numbered, _table_of
 
 # Each round merges at most this share of the merges still to make: 0.1 / 0.25 / 0.5 / 1 gave a
@@ -368,7 +369,7 @@ def _merge(sums, eu, ev, n_groups, reg_covar):
         if n_pairs == 0:
             break
         take = min(n_pairs, max(1, int(_MERGE_SHARE * (count - n_groups))))
-        limit = np.inf if take == n_pairs else np.partition(pair_cost[:n_pairs], take - 1)[take - 1]
+        limit = np.inf if take == n_pairs else kth_smallest(pair_cost[:n_pairs].copy(), take - 1)
         for i in range(n_pairs):
             x = pairs[i]
             p = best_to[x]

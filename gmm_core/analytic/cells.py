@@ -46,7 +46,7 @@ def _evidence_at_cells(
     hits, misses = np.zeros(centers.shape[0]), np.zeros(centers.shape[0])
     for c in prange(centers.shape[0]):
         _evidence_at_cell(
-            c, centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means,
+            np.int64(c), centers, half, means, covs, isos, evals, evecs, sensors, max_range, counts, axes, dist_means,
             reaches, half_angles, hits, misses, np.empty(4), np.empty(4),
         )  # fmt: skip
     return hits, misses
@@ -72,7 +72,10 @@ def as_cells(centers, cell_size: float, dim: int) -> tuple[np.ndarray, float]:
     centers = np.asarray(centers, dtype=np.float64)
     if centers.shape[-1] != dim:
         raise ValueError(f"centers are {centers.shape[-1]}D points, the component or scans are {dim}D")
-    centers = np.ascontiguousarray(centers.reshape(-1, dim))
+    # writable and C-ordered, and c an int64 in _evidence_at_cells' prange: _evidence_at_cell is
+    # compiled for one signature, not three (read-only centers cost 5.6 s more, the prange's index
+    # 3.3 s, on a 2-core AMD EPYC: BENCHMARKS.md, twenty-ninth session)
+    centers = np.require(centers.reshape(-1, dim), requirements=("C", "W"))
     if not (np.isfinite(cell_size) and cell_size > 0):
         raise ValueError(f"cell_size must be positive, got {cell_size}")
     return centers, 0.5 * float(cell_size)
