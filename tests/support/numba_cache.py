@@ -22,15 +22,15 @@ from pathlib import Path
 from services.sim.warmup import SERVER_WARM_UP, finish_warm_up, kernels_cached, start_warm_up
 
 PACKAGES = ("gmm_core", "services", "protocol")
-# Each compiles a share of the kernels in a process of its own: a map server's (2D and 3D: 61 s on
-# an empty cache on the EPYC) and a simulated robot's in a 2D and a 3D world (54 and 58 s).
+# Each compiles a share of the kernels in a process of its own, one a core: a map server's (2D and
+# 3D: 60 s on an empty cache on a 2-core AMD EPYC) and a simulated robot's in a 2D world, then in a
+# 3D one (45 s each alone, the simulator's kernels compiled once). A third process for the 3D
+# robot compiled the simulator's kernels a second time, on no core of its own: 112-120 s against
+# 92-97 s for the two (docs/BENCHMARKS.md, twenty-ninth session).
 WARM_UPS = (
     SERVER_WARM_UP,
-    *(
-        "from gmm_core import FitConfig; from services.sim.warmup import warm_robot_kernels; "
-        f"warm_robot_kernels({world!r}, FitConfig(), 'q')"
-        for world in ("office", "mine")
-    ),
+    "from gmm_core import FitConfig; from services.sim.warmup import warm_robot_kernels; "
+    + "; ".join(f"warm_robot_kernels({world!r}, FitConfig(), 'q')" for world in ("office", "mine")),
 )
 
 
