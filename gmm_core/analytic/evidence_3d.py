@@ -22,6 +22,9 @@ from gmm_core.analytic.special import SQRT2, SQRT_2_OVER_PI, SQRT_2PI, SQRT_HALF
 
 # Gauss-Legendre rule on [-1, 1] for the slices of a cube (_cube_masses_3d).
 _SLICE_X, _SLICE_W = np.polynomial.legendre.leggauss(6)
+# The rows of _cube_halfspaces: the cube's 6, then C(V)'s. numpy integers, not literals: numba
+# would compile _clipped_slice_mass once for each literal it is called with (ARCHITECTURE.md).
+_FIRST_CUBE_ROW, _FIRST_CONE_ROW = np.int64(0), np.int64(6)
 SLICE_HALF_WIDTH = 9.0  # slices are clipped to |u|, |v| <= 9 (isotropic): the mass outside is < 1e-18
 
 
@@ -180,9 +183,11 @@ def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
             for r in range(rows):
                 gamma[r] = gamma0[r] - z * gamma1[r]
             if in_cube:
-                cube_mass += weight * _clipped_slice_mass(alpha, beta, gamma, 0, 6, xa, ya, xb, yb)
+                cube_mass += weight * _clipped_slice_mass(
+                    alpha, beta, gamma, _FIRST_CUBE_ROW, _FIRST_CONE_ROW, xa, ya, xb, yb
+                )
             if with_cone:
-                cone_mass += weight * _clipped_slice_mass(alpha, beta, gamma, 6, n_cone, xa, ya, xb, yb)
+                cone_mass += weight * _clipped_slice_mass(alpha, beta, gamma, _FIRST_CONE_ROW, n_cone, xa, ya, xb, yb)
     return min(cube_mass, 1.0), min(max(cone_mass, cube_mass), 1.0)
 
 
@@ -280,7 +285,7 @@ def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, hal
     """(hits, misses) of one component in one cube, as fractions of its mass."""
     corners = _cube_corners(cx, cy, cz, half)
     if holds_sensor(sensor, (cx, cy, cz), half):
-        mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, False)[0]
+        mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(False))[0]
         return (0.0, 1.0) if max_range else (mass, 1.0 - mass)
     # Isotropic frame, sensor at the origin: q is the sensor seen from the mean, ws the corners.
     q = np.zeros(3)
@@ -311,5 +316,5 @@ def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, hal
             return 0.0, 0.0  # the cube's cone passes the component by
         if all_front and r_far < p - NEGLIGIBLE_SIGMA:
             return 0.0, _shadow_mass_eq9(ws, b, p)  # well in front: the paper's Eq. 9
-    mass, beyond_entry = _cube_masses_3d(mean, evals, evecs, sensor, corners, True)
+    mass, beyond_entry = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(True))
     return (0.0, beyond_entry) if max_range else (mass, max(beyond_entry - mass, 0.0))
