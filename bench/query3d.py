@@ -15,8 +15,9 @@ Times are processor seconds of the process (all its threads: one tracer, so one 
 seconds, the median of `--runs` maps; on a shared machine the processor time is the steadier.
 
 `--auroc SPC [SPC ...]`: instead, the region's quality at each of those samples per cell: AUROC
-of the served probabilities against the mine world's truth over the cells with any evidence (those
-of the first value), and the processor seconds of the cold region, one fresh map each.
+of the probabilities a server serves (the counts smoothed, gmm_core.smoothing) against the mine
+world's truth over the cells with any evidence (those of the first value), and the processor
+seconds of the cold region, one fresh map each.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import mine_map  # noqa: E402
 
 from gmm_core import Grid  # noqa: E402
 from gmm_core.metrics import auroc  # noqa: E402
-from gmm_core.occupancy import map_estimate  # noqa: E402
+from gmm_core.occupancy import monte_carlo_estimate  # noqa: E402
 from protocol import PoseGraphUpdate, ScanMessage, decode  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
 from services.sim.worlds import make_world  # noqa: E402
@@ -113,7 +114,7 @@ def region_quality(messages: list[bytes], updates: list[bytes], region: Grid, sa
         hits, misses = fleet_map.counts(region)
         cpu = time.process_time() - start
         observed = (hits + misses) > 0 if observed is None else observed
-        quality = auroc(map_estimate(hits, misses)[observed], truth[observed])
+        quality = auroc(monte_carlo_estimate(hits, misses, spc)[observed], truth[observed])
         print(f"| {spc:g} | {quality:.5f} | {cpu:.2f} |", flush=True)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from gmm_core.smoothing import smoothed, smoothing_weight
+
 DEFAULT_PRIOR = 0.2  # N_p: measured on Intel (docs/BENCHMARKS.md), better than 1 for sparse data
 
 OCCUPIED, FREE, UNKNOWN = 1, 0, -1
@@ -33,6 +35,15 @@ def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PR
     )
     _map_estimate(h, m, np.float32(prior), np.float32(2 * prior), out.reshape(-1))
     return out
+
+
+def monte_carlo_estimate(
+    hits: np.ndarray, misses: np.ndarray, samples_per_cell: float, prior: float = DEFAULT_PRIOR
+) -> np.ndarray:
+    """map_estimate of Monte-Carlo counts drawn at `samples_per_cell`: smoothed first on a 3D grid
+    (gmm_core.smoothing), as they are wherever a 3D map is served or replayed."""
+    weight = smoothing_weight(samples_per_cell, np.ndim(hits))
+    return map_estimate(smoothed(hits, weight), smoothed(misses, weight), prior)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -10,7 +10,7 @@ import numpy as np
 
 from gmm_core import FitConfig, Grid, ScanModel, fit_scan
 from gmm_core.analytic.evidence_2d import analytic_map_2d
-from gmm_core.occupancy import map_estimate
+from gmm_core.occupancy import map_estimate, monte_carlo_estimate
 from gmm_core.pose import Pose
 from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import scan_seed
@@ -122,4 +122,8 @@ def replay(
             samples_per_cell=reconstruction.samples_per_cell,
             progress=tick("trace", len(scans)),
         )
-    return ReplayMap(grid, hits, misses, map_estimate(hits, misses, reconstruction.prior), len(scans), components)
+    if method == "mc":
+        prob = monte_carlo_estimate(hits, misses, reconstruction.samples_per_cell, reconstruction.prior)
+    else:
+        prob = map_estimate(hits, misses, reconstruction.prior)
+    return ReplayMap(grid, hits, misses, prob, len(scans), components)

@@ -21,7 +21,7 @@ import numpy as np
 
 from gmm_core import Grid
 from gmm_core.analytic.cells import occupancy_at_cells
-from gmm_core.occupancy import map_estimate
+from gmm_core.occupancy import monte_carlo_estimate
 from protocol.messages import POINT_METHODS
 
 BLOCK = 64  # cells per axis of one evaluation grid
@@ -103,7 +103,8 @@ def point_probabilities(
             return analytic_probabilities(fleet_map, xy, resolution, robots)
     out = np.empty(len(xy), dtype=np.float32)
     for grid, members, cells in grids if grids is not None else plan(xy, resolution):
-        out[members] = map_estimate(*fleet_map.counts(grid, robots), fleet_map.prior)[cells]
+        hits, misses = fleet_map.counts(grid, robots)
+        out[members] = monte_carlo_estimate(hits, misses, fleet_map.samples_per_cell, fleet_map.prior)[cells]
     return out
 
 

@@ -65,9 +65,10 @@ class ServerConfig:
     # one process use (about 1.2 measured); each process costs about 300 MiB with its own sample cache.
     trace_processes: bool = False
     # Monte-Carlo samples per cell of the nodes a tile update begun while any tracer has work traces
-    # (tiles.py): a quarter of the cost at 1 against the default 4, with more noise, refined once the
-    # tracers are idle; 0: every update with the reconstruction's samples per cell.
-    busy_samples_per_cell: float = 1.0
+    # (tiles.py), refined once the tracers are idle: a fraction of the cost, with more noise; None:
+    # tiles.BUSY_SAMPLES_PER_CELL by the map's dimension (1 in 2D, 0.35 in 3D, against the default
+    # 4); 0: every update with the reconstruction's samples per cell.
+    busy_samples_per_cell: float | None = None
 
     def __post_init__(self):
         check_id(self.fleet, "server.fleet")
@@ -78,7 +79,8 @@ class ServerConfig:
         require_number("server.robot_quota_mb", self.robot_quota_mb, positive=False)
         if self.trace_threads is not None:
             require_count("server.trace_threads", self.trace_threads)
-        require_number("server.busy_samples_per_cell", self.busy_samples_per_cell, positive=False)
+        if self.busy_samples_per_cell is not None:
+            require_number("server.busy_samples_per_cell", self.busy_samples_per_cell, positive=False)
         if not self.listen and not self.zenoh_connect:
             raise ValueError("server.zenoh_listen: a server needs an endpoint to listen on or to connect to")
 

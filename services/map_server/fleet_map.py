@@ -12,7 +12,7 @@ tiles.TileCache (the incremental tile update) and tracers.TracerPool.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ class FleetMap:
         samples_per_cell: float = 4.0,
         prior: float = DEFAULT_PRIOR,
         trace_threads: int | None = None,
-        busy_samples_per_cell: float | None = None,
+        busy_samples_per_cell: float | Mapping[int, float] | None = None,
         stored_bytes: Callable[[NodeKey], bytes] | None = None,
         trace_store: Path | None = None,
         report_slow_updates: bool = True,
@@ -53,7 +53,7 @@ class FleetMap:
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
         their models nor their bytes (a server keeps a shift's scans: nodes.py).
         busy_samples_per_cell: what tile updates begun while any tracer has work trace new and moved
-        nodes with (tiles.py); None: always `samples_per_cell`.
+        nodes with, one for all grids or one by dimension (tiles.py); None: always `samples_per_cell`.
         trace_store: the file of the store `stored_bytes` reads, to trace in a process per tracer
         thread reading the nodes from it (tracers.py); None: in the tracer threads.
         report_slow_updates: log tile updates over tiles.SLOW_UPDATE_S (a throwaway map logs none)."""

@@ -48,6 +48,7 @@ from .fleet_map import FleetMap
 from .ingest import Ingest
 from .state import ServerState
 from .store import Store
+from .tiles import BUSY_SAMPLES_PER_CELL
 from .tokens import TokenFile
 from .warmup import warm_kernels
 
@@ -259,7 +260,9 @@ def run_server(
         samples_per_cell=reconstruction.samples_per_cell,
         prior=reconstruction.prior,
         trace_threads=options.trace_threads,
-        busy_samples_per_cell=options.busy_samples_per_cell or None,
+        busy_samples_per_cell=(
+            BUSY_SAMPLES_PER_CELL if options.busy_samples_per_cell is None else options.busy_samples_per_cell or None
+        ),
         stored_bytes=store.scan_reader(options.fleet),
         trace_store=store.path if options.trace_processes else None,
     )

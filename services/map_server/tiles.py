@@ -30,7 +30,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -39,7 +39,7 @@ from itertools import chain, compress, islice
 import numpy as np
 
 from gmm_core import Grid
-from gmm_core.occupancy import map_estimate
+from gmm_core.occupancy import monte_carlo_estimate
 from gmm_core.pose import displacements
 
 from .nodes import NodeKey, NodeStore, Posed
@@ -59,6 +59,10 @@ COALESCE_CHANGES = 16  # ... with at most this many changes since is served inst
 # of the tile's cells since the pose the tile counts it at: an optimiser moves every node of a loop a
 # little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
 REPOSE_CELLS = 0.25
+# The busy samples per cell a server uses unless told (server.busy_samples_per_cell), by the map's
+# dimension: a 3D ray costs tens of 2D ones, and 3D counts are smoothed (gmm_core.smoothing), so 0.35
+# smoothed serve as well as 1 unsmoothed (docs/BENCHMARKS.md, thirtieth session).
+BUSY_SAMPLES_PER_CELL = {2: 1.0, 3: 0.35}
 BUSY_REPOSE_CELLS = 1.0  # the same in an update with busy tracers, whose fewer samples are noisier than that
 # Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
 # is a background update like any other, and one of a whole tile would hold the tracers for seconds.
@@ -159,11 +163,12 @@ class TileCache:
         tracers: TracerPool,
         prior: float,
         samples_per_cell: float,
-        busy_samples_per_cell: float | None = None,
+        busy_samples_per_cell: float | Mapping[int, float] | None = None,
         report_slow: bool = True,
     ):
         """busy_samples_per_cell: what updates begun while any tracer has work count new and moved
-        nodes with; None (or not below `samples_per_cell`, the map's): always the map's.
+        nodes with, one for every grid or one by dimension (as BUSY_SAMPLES_PER_CELL); None (or not
+        below `samples_per_cell`, the map's): always the map's.
         report_slow: log each update over SLOW_UPDATE_S (a throwaway map's, as the warm-up's, are not)."""
         self._lock = lock
         self._nodes = nodes
@@ -173,8 +178,12 @@ class TileCache:
         self.prior = prior
         self.samples_per_cell = samples_per_cell
         self.report_slow = report_slow
-        thins = busy_samples_per_cell is not None and busy_samples_per_cell < samples_per_cell
-        self.busy_samples_per_cell = busy_samples_per_cell if thins else None
+        by_dim = busy_samples_per_cell if isinstance(busy_samples_per_cell, Mapping) else {}
+        self._busy_samples_per_cell = {
+            dim: spc if spc is not None and spc < samples_per_cell else None
+            for dim in (2, 3)
+            for spc in [by_dim.get(dim) if by_dim else busy_samples_per_cell]
+        }
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
         self._bytes = 0
         self._boxes: tuple[list[Tile], np.ndarray, np.ndarray] | None = None  # while the tile set is unchanged
@@ -185,6 +194,10 @@ class TileCache:
         self._coalesced = 0  # answered with a recent state while every tracer was busy
         self._shed = 0  # refused: the tracers were saturated
         self._thinned_updates = 0  # traced with busy_samples_per_cell
+
+    def busy_samples_per_cell(self, grid: Grid) -> float | None:
+        """The samples per cell of updates of `grid` begun with busy tracers; None: the map's."""
+        return self._busy_samples_per_cell[grid.dim]
 
     def close(self) -> None:
         """No more background updates (the tracers are closed by their owner)."""
@@ -381,7 +394,7 @@ class TileCache:
         repose_cells = REPOSE_CELLS if full else BUSY_REPOSE_CELLS  # the tolerance of busy tracers
         if bounded and len(nodes) > FULL_UPDATE_NODES:
             full = False  # a large update is thinned even on idle tracers, and refined behind it
-        samples_per_cell = None if full else self.busy_samples_per_cell
+        samples_per_cell = None if full else self.busy_samples_per_cell(tile.grid)
         refined = {}
         if full and tile.unrefined and not afresh:
             thinned = (k for k, posed in tile.held.items() if posed.samples_per_cell is not None)
@@ -405,10 +418,10 @@ class TileCache:
                     tile.dirty_since = tile.outdated_since  # nothing was applied
                     tile.updated.notify_all()
                 raise
-            prob = map_estimate(tile.hits, tile.misses, self.prior)
-            prob.setflags(write=False)
             # The state's samples per cell (a tile holds thinned nodes only where busy_samples_per_cell is set).
-            state_samples_per_cell = self.busy_samples_per_cell if tile.thinned else self.samples_per_cell
+            state_samples_per_cell = self.busy_samples_per_cell(tile.grid) if tile.thinned else self.samples_per_cell
+            prob = monte_carlo_estimate(tile.hits, tile.misses, state_samples_per_cell, self.prior)
+            prob.setflags(write=False)
             seconds = time.monotonic() - start
             if self.report_slow and seconds > SLOW_UPDATE_S:
                 log.warning(

@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from gmm_core import Grid
-from gmm_core.occupancy import map_estimate
+from gmm_core.occupancy import monte_carlo_estimate
 from gmm_core.sampling import ScanSamples, scan_samples, scan_seed
 from gmm_core.scan_trace import GridCounts
 from protocol import ScanMessage, decode
@@ -55,7 +55,7 @@ def offline_maps(record: RunRecord, stored_at: list[dict[str, int]], progress) -
                     counts.add(samples[robot, node], poses[name](robot, node, message))
                 added[robot] = max(added[robot], count)
             hits, misses = counts.arrays()
-            out[name][j][place] = map_estimate(hits, misses, r.prior)
+            out[name][j][place] = monte_carlo_estimate(hits, misses, r.samples_per_cell, r.prior)
 
     # The tracer runs outside the GIL: the maps are rebuilt on threads of their own, box by box.
     with ThreadPoolExecutor(min(len(poses), cpu_cores())) as pool:

@@ -7,13 +7,14 @@ import time
 import numpy as np
 import pytest
 
-from gmm_core import Grid, Pose, fit_scan
-from gmm_core.occupancy import map_estimate
+from gmm_core import Grid, Pose, ScanModel, fit_scan
+from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate, monte_carlo_estimate
 from protocol import PoseGraphUpdate, ScanMessage
 from services.map_server import tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import MAX_STALE_S, TileCache
 from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
+from support.fuzz import scan_like_mixture
 from support.net import wait_for
 from support.saturation import saturated_tracers
 
@@ -206,16 +207,20 @@ def test_a_request_for_every_change_refines_a_thinned_tile_at_once(messages, mon
     assert np.array_equal(exact.prob, offline(messages[:20], None, {}))
 
 
-def offline(messages, update, samples_per_cell: dict[int, float], grid: Grid = GRID) -> np.ndarray:
-    """p(occupied) on `grid` of `messages` re-posed by `update`, each node traced with
+def offline_counts(messages, update, samples_per_cell: dict[int, float], grid: Grid = GRID):
+    """(hits, misses) on `grid` of `messages` re-posed by `update`, each node traced with
     `samples_per_cell[node]` (default the map's), summed exactly as a tile sums them."""
     fleet = fleet_of(messages)
     if update is not None:
         fleet.apply_poses(update)
     reaching = fleet._nodes.reaching(grid, None)
     counted = [posed._replace(samples_per_cell=samples_per_cell.get(key[1])) for key, posed in reaching.items()]
-    hits, misses = fleet._tracers.trace(grid, counted, [])
-    return map_estimate(hits, misses, fleet.prior)
+    return fleet._tracers.trace(grid, counted, [])
+
+
+def offline(messages, update, samples_per_cell: dict[int, float], grid: Grid = GRID) -> np.ndarray:
+    """p(occupied) of offline_counts (2D: Eq. 11 of the counts as they are)."""
+    return map_estimate(*offline_counts(messages, update, samples_per_cell, grid), DEFAULT_PRIOR)
 
 
 def viewer_tiles(resolution: float, side: int = 64) -> list[Grid]:
@@ -297,14 +302,14 @@ def test_an_answer_states_the_samples_per_cell_of_the_state_it_serves(messages, 
     thinned = fleet.occupancy_answer(grid, patience=0.0)  # 20 nodes, afresh: thinned
     assert thinned.samples_per_cell == 1.0
     estimating, publish = threading.Event(), threading.Event()
-    estimate = tiles.map_estimate
+    estimate = tiles.monte_carlo_estimate
 
-    def held(hits, misses, prior):  # the refinement's state, held before it is published
+    def held(hits, misses, samples_per_cell, prior):  # the refinement's state, held before it is published
         estimating.set()
         assert publish.wait(30)
-        return estimate(hits, misses, prior)
+        return estimate(hits, misses, samples_per_cell, prior)
 
-    monkeypatch.setattr(tiles, "map_estimate", held)
+    monkeypatch.setattr(tiles, "monte_carlo_estimate", held)
     assert fleet.occupancy_answer(grid).kind == "fresh"  # served as it is, refined behind it
     assert estimating.wait(30)
     during = fleet.occupancy_answer(grid)
@@ -427,3 +432,35 @@ def test_only_an_unbounded_update_gives_way_to_other_traces(messages, monkeypatc
     fleet.add_scan(messages[21])
     fleet.occupancy_answer(GRID, max_age=0)
     assert flags == [False, False, True]
+
+
+def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_smoothed(monkeypatch):
+    """A server's busy samples per cell are one per dimension (tiles.BUSY_SAMPLES_PER_CELL); a thinned
+    3D tile is served as monte_carlo_estimate of its counts at those samples (smoothed), a 2D one not."""
+    by_dim = FleetMap("f", busy_samples_per_cell=tiles.BUSY_SAMPLES_PER_CELL, trace_threads=1)
+    grids = {dim: Grid(np.full(dim, -4.0), 0.25, (32,) * dim) for dim in (2, 3)}
+    assert {d: by_dim._tiles.busy_samples_per_cell(g) for d, g in grids.items()} == tiles.BUSY_SAMPLES_PER_CELL
+    one = FleetMap("f", busy_samples_per_cell=2.0, trace_threads=1)
+    assert [one._tiles.busy_samples_per_cell(g) for g in grids.values()] == [2.0, 2.0]
+    over = FleetMap("f", samples_per_cell=1.0, busy_samples_per_cell={2: 0.5, 3: 1.0}, trace_threads=1)
+    assert [over._tiles.busy_samples_per_cell(g) for g in grids.values()] == [0.5, None]  # not below the map's
+
+    rng = np.random.default_rng(5)
+    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 1)  # the 3 nodes: a large update, thinned
+    scans = [
+        ScanMessage(
+            "f",
+            "r1",
+            n,
+            float(n),
+            ScanModel(scan_like_mixture(rng, 3, 12, 3.0), scan_like_mixture(rng, 3, 0), np.zeros(3), 20.0),
+            Pose.identity(3),
+        )
+        for n in range(3)
+    ]
+    fleet = fleet_of(scans, busy_samples_per_cell={3: 0.35})
+    thinned = fleet.occupancy_answer(grids[3], patience=0.0)
+    assert thinned.samples_per_cell == 0.35
+    hits, misses = offline_counts(scans, None, {n: 0.35 for n in range(3)}, grids[3])
+    assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.35, fleet.prior))
+    assert not np.array_equal(thinned.prob, map_estimate(hits, misses, fleet.prior))
