@@ -15,7 +15,7 @@ Times are processor seconds of the process (all its threads: one tracer, so one 
 seconds, the median of `--runs` maps; on a shared machine the processor time is the steadier.
 
 `--auroc SPC [SPC ...]`: instead, the region's quality at each of those samples per cell: AUROC
-of the probabilities a server serves (the counts smoothed, gmm_core.smoothing) against the mine
+of the probabilities a server serves (a cell's prior from its neighbourhood, gmm_core.smoothing) against the mine
 world's truth over the cells with any evidence (those of the first value), and the processor
 seconds of the cold region, one fresh map each.
 """

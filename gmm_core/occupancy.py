@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from gmm_core.smoothing import smoothed, smoothing_weight
+from gmm_core.smoothing import NEIGHBOURHOOD_WEIGHT, prior_beams, smoothed
 
 DEFAULT_PRIOR = 0.2  # N_p: measured on Intel (docs/BENCHMARKS.md), better than 1 for sparse data
 
@@ -40,10 +40,30 @@ def map_estimate(hits: np.ndarray, misses: np.ndarray, prior: float = DEFAULT_PR
 def monte_carlo_estimate(
     hits: np.ndarray, misses: np.ndarray, samples_per_cell: float, prior: float = DEFAULT_PRIOR
 ) -> np.ndarray:
-    """map_estimate of Monte-Carlo counts drawn at `samples_per_cell`: smoothed first on a 3D grid
-    (gmm_core.smoothing), as they are wherever a 3D map is served or replayed."""
-    weight = smoothing_weight(samples_per_cell, np.ndim(hits))
-    return map_estimate(smoothed(hits, weight), smoothed(misses, weight), prior)
+    """Eq. 11 of Monte-Carlo counts drawn at `samples_per_cell`, in float32: on a 3D grid with the
+    prior taken from each cell's neighbourhood (gmm_core.smoothing), as wherever a 3D map is served
+    or replayed; map_estimate in 2D."""
+    n0 = prior_beams(samples_per_cell, np.ndim(hits))
+    if n0 == 0.0:
+        return map_estimate(hits, misses, prior)
+    if prior <= 0:
+        raise ValueError(f"prior: N_p must be positive, got {prior}")
+    hits, misses = np.asarray(hits, dtype=np.float64), np.asarray(misses, dtype=np.float64)
+    if hits.shape != misses.shape:
+        raise ValueError(f"misses: shape {misses.shape} differs from the hits' {hits.shape}")
+    around = smoothed(hits, NEIGHBOURHOOD_WEIGHT), smoothed(misses, NEIGHBOURHOOD_WEIGHT)
+    out = np.empty(hits.shape, np.float32)
+    h, m, h_nb, m_nb = (np.ascontiguousarray(a).reshape(-1) for a in (hits, misses, *around))
+    _neighbourhood_estimate(h, m, h_nb, m_nb, n0, prior, out.reshape(-1))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _neighbourhood_estimate(hits, misses, hits_around, misses_around, n0, prior, out):
+    """theta = (h + n0 p_nb + p) / (h + m + n0 + 2 p), p_nb Eq. 11 of the smoothed counts, cell by cell."""
+    for i in range(out.shape[0]):
+        p_nb = (hits_around[i] + prior) / (hits_around[i] + misses_around[i] + 2.0 * prior)
+        out[i] = (hits[i] + n0 * p_nb + prior) / (hits[i] + misses[i] + n0 + 2.0 * prior)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

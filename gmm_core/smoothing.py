@@ -1,22 +1,27 @@
-"""Monte-Carlo counts of a 3D grid smoothed across neighbouring cells before Eq. 11.
+"""The prior of Eq. 11 for Monte-Carlo counts of a 3D grid, taken from each cell's neighbourhood.
 
-The hit and miss counts of a Monte-Carlo reconstruction (Eq. 10) estimate the expected counts with
-a noise that falls as 1 / sqrt(samples per cell). Before the MAP estimate, 3D counts are smoothed
-by the separable kernel [c, 1 - 2c, c] along each axis, with c = SMOOTHING_AT_ONE / sqrt(samples per
-cell), at most MAX_SMOOTHING: a little resolution traded for variance, less of it the more samples.
-Measured (docs/BENCHMARKS.md, thirtieth session), AUROC unsmoothed -> smoothed at 1 / 4 samples per
-cell: BALM OS0 at 0.2 m against the raw grid 0.9921 -> 0.9952 / 0.9963 -> 0.9966; the mine map's 3D
-region against the world 0.9926 -> 0.9967 / 0.9949 -> 0.9970 (over its best-seen cells 0.9961 ->
-0.9964 / 0.9973 -> 0.9972: where samples are plenty the kernel costs a little). 0.35 samples per
-cell smoothed are about as good as 1 unsmoothed, for a third of the rays.
+The hit and miss counts of a Monte-Carlo reconstruction (Eq. 10) carry a noise that falls as
+1 / sqrt(samples per cell). Eq. 11's Beta prior (N_p beams each way, p = 0.5) is the same for every
+cell; for 3D counts it is taken from the cell's neighbourhood instead (empirical Bayes): the counts
+smoothed by the separable kernel [c, 1 - 2c, c] along each axis (c = NEIGHBOURHOOD_WEIGHT) give an
+estimate p_nb by Eq. 11, which enters as a prior worth N_0 beams,
 
-2D grids are not smoothed: on the Intel log at the default 4 samples per cell, c = 0.05 lowered AUROC
-against the raw grid by 0.0003-0.0024 (0.05 and 0.1 m; at 1 sample per cell it raised it by up to
-0.0036), so 2D maps keep the paper's estimate.
+    theta = (N_H + N_0 p_nb + N_p) / (N_H + N_M + N_0 + 2 N_p),    N_0 = PRIOR_BEAMS_AT_ONE / sqrt(samples per cell),
+
+so a cell seen by few rays takes most of its estimate from around it and a well-seen cell keeps its
+own; fewer samples, a stronger prior. Measured (docs/BENCHMARKS.md, thirtieth session; samples
+drawn by the 2D rule, max(N pi_k, cells), before 3D's own in gmm_core.sampling), AUROC of Eq. 11 as
+printed -> with this prior, at 1 / 4 samples per cell: BALM OS0 at 0.2 m against the raw grid
+0.9921 -> 0.9956 / 0.9963 -> 0.9967; the mine map's 3D region against the world 0.9926 -> 0.9972 /
+0.9949 -> 0.9975, over its best-seen cells 0.9961 -> 0.9970 / 0.9973 -> 0.9974; 0.3 samples per
+cell with it were about as good as 1 without. (Smoothing the counts themselves, without the
+own-cell term, gained less and lost on the best-seen cells.)
+
+2D grids keep Eq. 11 as printed: on the Intel log at the default 4 samples per cell, smoothed counts
+(c = 0.05) lowered AUROC against the raw grid by 0.0003-0.0024 (0.05 and 0.1 m).
 
 A cell beyond the grid's edge is taken as the nearest cell inside (a constant field stays
-constant): the edge cells of a window may differ from the same cells of a larger grid by c times
-their difference to the neighbour outside.
+constant): the edge cells of a window may differ from the same cells of a larger grid.
 """
 
 from __future__ import annotations
@@ -24,15 +29,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-SMOOTHING_AT_ONE = 0.075  # c at one sample per cell: the best of 0.03-0.25 on BALM and the mine map
-MAX_SMOOTHING = 0.125  # c at fewer than 0.36 samples per cell: beyond 0.15 every map measured lost
+NEIGHBOURHOOD_WEIGHT = 0.125  # c of the kernel that makes p_nb; 0.25 gained at few samples, lost at 4
+PRIOR_BEAMS_AT_ONE = 16.0  # N_0 at one sample per cell; 10 and 16 measured alike, 8-64 tried
 
 
-def smoothing_weight(samples_per_cell: float, dim: int) -> float:
-    """c of the kernel [c, 1 - 2c, c] for counts of `samples_per_cell` on a `dim`-D grid (0: none)."""
+def prior_beams(samples_per_cell: float, dim: int) -> float:
+    """N_0, the beams the neighbourhood's estimate is worth, for counts of `samples_per_cell` on a
+    `dim`-D grid (0: none)."""
     if dim != 3:
         return 0.0
-    return min(MAX_SMOOTHING, SMOOTHING_AT_ONE / float(np.sqrt(samples_per_cell)))
+    return PRIOR_BEAMS_AT_ONE / float(np.sqrt(samples_per_cell))
 
 
 def smoothed(counts: np.ndarray, weight: float) -> np.ndarray:

@@ -1,10 +1,11 @@
-"""gmm_core.smoothing against a plain numpy convolution on random grids, and the weights' rule."""
+"""gmm_core.smoothing against a plain numpy convolution on random grids, and the neighbourhood's
+prior of Eq. 11 (occupancy.monte_carlo_estimate) against its formula in numpy."""
 
 import numpy as np
 import pytest
 
-from gmm_core.occupancy import map_estimate, monte_carlo_estimate
-from gmm_core.smoothing import MAX_SMOOTHING, SMOOTHING_AT_ONE, smoothed, smoothing_weight
+from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate, monte_carlo_estimate
+from gmm_core.smoothing import NEIGHBOURHOOD_WEIGHT, PRIOR_BEAMS_AT_ONE, prior_beams, smoothed
 
 
 def reference(counts: np.ndarray, c: float) -> np.ndarray:
@@ -21,7 +22,7 @@ def reference(counts: np.ndarray, c: float) -> np.ndarray:
 @pytest.mark.parametrize("shape", [(7, 5, 3), (1, 9, 4), (6, 1, 1), (2, 2), (11,), (3, 4, 5, 2)])
 def test_smoothed_matches_the_padded_convolution(shape):
     rng = np.random.default_rng(len(shape) * 10 + shape[0])
-    for c in (0.0, 0.05, MAX_SMOOTHING, 1.0 / 3.0):
+    for c in (0.0, 0.05, NEIGHBOURHOOD_WEIGHT, 1.0 / 3.0):
         counts = rng.exponential(size=shape).astype(np.float32)
         before = counts.copy()
         out = smoothed(counts, c)
@@ -48,17 +49,37 @@ def test_bad_weights_are_refused_by_name():
         smoothed(np.zeros((3, 3, 3)), -0.01)
 
 
-def test_the_weight_falls_with_the_samples_and_is_3d_only():
-    assert smoothing_weight(1.0, 3) == SMOOTHING_AT_ONE
-    assert smoothing_weight(4.0, 3) == pytest.approx(SMOOTHING_AT_ONE / 2)
-    assert smoothing_weight(0.1, 3) == MAX_SMOOTHING
-    assert smoothing_weight(0.1, 2) == smoothing_weight(4.0, 2) == 0.0
+def test_the_prior_weakens_with_the_samples_and_is_3d_only():
+    assert prior_beams(1.0, 3) == PRIOR_BEAMS_AT_ONE
+    assert prior_beams(4.0, 3) == pytest.approx(PRIOR_BEAMS_AT_ONE / 2)
+    assert prior_beams(0.3, 2) == prior_beams(4.0, 2) == 0.0
 
 
-def test_monte_carlo_estimate_smooths_3d_counts_and_leaves_2d_ones():
+def neighbourhood_reference(hits, misses, samples_per_cell, prior=DEFAULT_PRIOR):
+    n0, c = prior_beams(samples_per_cell, 3), NEIGHBOURHOOD_WEIGHT
+    around_h, around_m = reference(hits, c), reference(misses, c)
+    p_nb = (around_h + prior) / (around_h + around_m + 2 * prior)
+    return (hits + n0 * p_nb + prior) / (hits + misses + n0 + 2 * prior)
+
+
+def test_monte_carlo_estimate_takes_a_3d_cells_prior_from_its_neighbourhood_and_leaves_2d_alone():
     rng = np.random.default_rng(3)
-    hits, misses = rng.exponential(size=(2, 6, 7, 8))
-    c = smoothing_weight(2.0, 3)
-    expected = map_estimate(reference(hits, c), reference(misses, c))
-    np.testing.assert_allclose(monte_carlo_estimate(hits, misses, 2.0), expected, rtol=1e-6)
+    hits, misses = rng.exponential(size=(2, 6, 7, 8)) * rng.choice([0.0, 1.0, 100.0], size=(2, 6, 7, 8))
+    for spc in (0.3, 1.0, 4.0):
+        got = monte_carlo_estimate(hits.astype(np.float32), misses, spc)
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, neighbourhood_reference(hits, misses, spc), rtol=1e-6)
     assert np.array_equal(monte_carlo_estimate(hits[0], misses[0], 2.0), map_estimate(hits[0], misses[0]))
+
+
+def test_an_unseen_cell_takes_its_neighbourhoods_estimate_and_a_well_seen_one_keeps_its_own():
+    hits, misses = np.zeros((5, 5, 5)), np.full((5, 5, 5), 50.0)  # free space all round ...
+    misses[2, 2, 2] = 0.0  # ... but for one cell no ray reached
+    hits[0, 0, 0], misses[0, 0, 0] = 1e4, 0.0  # and one, two cells away, seen occupied by many
+    p = monte_carlo_estimate(hits, misses, 1.0)
+    assert map_estimate(hits, misses)[2, 2, 2] == 0.5 and p[2, 2, 2] < 0.1
+    assert p[0, 0, 0] > 0.99
+    with pytest.raises(ValueError, match="misses"):
+        monte_carlo_estimate(hits, misses[:4], 1.0)
+    with pytest.raises(ValueError, match="prior"):
+        monte_carlo_estimate(hits, misses, 1.0, prior=0.0)

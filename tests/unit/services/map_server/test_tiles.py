@@ -434,9 +434,9 @@ def test_only_an_unbounded_update_gives_way_to_other_traces(messages, monkeypatc
     assert flags == [False, False, True]
 
 
-def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_smoothed(monkeypatch):
+def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_with_the_neighbourhoods_prior(monkeypatch):
     """A server's busy samples per cell are one per dimension (tiles.BUSY_SAMPLES_PER_CELL); a thinned
-    3D tile is served as monte_carlo_estimate of its counts at those samples (smoothed), a 2D one not."""
+    3D tile is served as monte_carlo_estimate of its counts at those samples (the neighbourhood's prior)."""
     by_dim = FleetMap("f", busy_samples_per_cell=tiles.BUSY_SAMPLES_PER_CELL, trace_threads=1)
     grids = {dim: Grid(np.full(dim, -4.0), 0.25, (32,) * dim) for dim in (2, 3)}
     assert {d: by_dim._tiles.busy_samples_per_cell(g) for d, g in grids.items()} == tiles.BUSY_SAMPLES_PER_CELL
@@ -458,9 +458,10 @@ def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_smoothed(monkeyp
         )
         for n in range(3)
     ]
-    fleet = fleet_of(scans, busy_samples_per_cell={3: 0.35})
-    thinned = fleet.occupancy_answer(grids[3], patience=0.0)
-    assert thinned.samples_per_cell == 0.35
-    hits, misses = offline_counts(scans, None, {n: 0.35 for n in range(3)}, grids[3])
-    assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.35, fleet.prior))
+    fleet = fleet_of(scans, busy_samples_per_cell={3: 0.6})
+    grid = Grid(np.full(3, -4.05), 0.25, (32,) * 3)  # off the lattice: a tile of its own, not a layer's window
+    thinned = fleet.occupancy_answer(grid, patience=0.0)
+    assert thinned.samples_per_cell == 0.6
+    hits, misses = offline_counts(scans, None, {n: 0.6 for n in range(3)}, grid)
+    assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.6, fleet.prior))
     assert not np.array_equal(thinned.prob, map_estimate(hits, misses, fleet.prior))
