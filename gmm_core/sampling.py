@@ -1,15 +1,9 @@
 """Deterministic Monte-Carlo samples of a scan's mixtures (Sec. III-C3, Algorithm 1 line 1).
 
-Each component k gets n_k samples, and each sample carries the weight N pi_k / n_k. Summed along
-rays, the weights estimate the expected number of beams (Eq. 10) whatever n_k is: more samples only
-lower the Monte-Carlo variance, so maps at different resolutions agree in their counts. In 2D, n_k
-puts a few samples in every cell the component covers at the query resolution, or one per point
-where it holds more points than cells: samples_per_cell * max(N pi_k, cells). In 3D, where a ray
-costs tens of 2D ones, n_k = samples_per_cell * sqrt(N pi_k * cells): a dense near patch gets fewer
-samples than points, whose noise its many rays make small anyway, and a sparse far one fewer than its
-cells, whose noise the neighbourhood's prior of Eq. 11 takes up (gmm_core.smoothing). For the same
-rays that gave higher AUROC on both 3D maps measured (the mine region 0.99653 against 0.99644 at
-0.69x the rays, BALM 0.9957 against 0.9956 at 0.77x; docs/BENCHMARKS.md, thirtieth session).
+Each component k gets n_k samples, enough to put a few in every cell it covers at the query
+resolution, and each sample carries the weight N pi_k / n_k. Summed along rays, the weights
+estimate the expected number of beams (Eq. 10) whatever n_k is: more samples only lower the
+Monte-Carlo variance, so maps at different resolutions agree in their counts.
 
 Samples are randomised quasi-Monte-Carlo: the uniforms of sample j of a mixture are point j of the
 Kronecker sequence frac(c + j alpha) of the golden-ratio generalisation R_d (alpha_a = phi_d^-(a+1),
@@ -44,8 +38,7 @@ WEIGHT_QUANTUM = 2.0**-26
 
 
 def samples_per_component(mixture: Mixture, resolution: float, samples_per_cell: float) -> np.ndarray:
-    """n_k = ceil(samples_per_cell * max(N pi_k, cells)) in 2D, ceil(samples_per_cell * sqrt(N pi_k cells))
-    in 3D, cells: those the 2-sigma box of k covers; at least 1, at most MAX_SAMPLES_PER_COMPONENT."""
+    """n_k = ceil(samples_per_cell * max(N pi_k, cells covered by the 2-sigma box of k))."""
     return _counts(_sigmas(mixture), mixture.support * mixture.weights, resolution, samples_per_cell)
 
 
@@ -58,8 +51,7 @@ def _sigmas(mixture: Mixture) -> np.ndarray:
 
 def _counts(sigmas: np.ndarray, expected_points: np.ndarray, resolution: float, samples_per_cell: float) -> np.ndarray:
     cells = np.prod(np.maximum(1.0, 4.0 * sigmas / resolution), axis=1)
-    per_cell = np.sqrt(expected_points * cells) if sigmas.shape[1] == 3 else np.maximum(expected_points, cells)
-    n = np.ceil(samples_per_cell * per_cell)
+    n = np.ceil(samples_per_cell * np.maximum(expected_points, cells))
     return np.clip(n, 1, MAX_SAMPLES_PER_COMPONENT).astype(np.int64)
 
 
@@ -232,8 +224,7 @@ def _plan(sigmas, expected_points, resolution, samples_per_cell):
         cells = 1.0
         for a in range(d):
             cells *= max(1.0, 4.0 * sigmas[k, a] / resolution)
-        per_cell = np.sqrt(expected_points[k] * cells) if d == 3 else max(expected_points[k], cells)
-        n = min(max(np.ceil(samples_per_cell * per_cell), 1.0), MAX_SAMPLES_PER_COMPONENT)
+        n = min(max(np.ceil(samples_per_cell * max(expected_points[k], cells)), 1.0), MAX_SAMPLES_PER_COMPONENT)
         counts[k], offsets[k] = np.int64(n), total
         total += counts[k]
         weights[k] = np.rint(expected_points[k] / max(counts[k], 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM

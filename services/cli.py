@@ -356,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="N",
         help="Monte-Carlo samples per cell of tile updates begun while any tracer has work, refined once they are "
-        "idle (0: always the reconstruction's; default 1 in 2D, 0.6 in 3D)",
+        "idle (0: always the reconstruction's; default 1 in 2D, 0.3 in 3D)",
     )
     setting(
         p,

@@ -60,10 +60,10 @@ COALESCE_CHANGES = 16  # ... with at most this many changes since is served inst
 # little at every closure, and sub-cell moves do not change a tile beyond its Monte-Carlo noise.
 REPOSE_CELLS = 0.25
 # The busy samples per cell a server uses unless told (server.busy_samples_per_cell), by the map's
-# dimension: a 3D ray costs tens of 2D ones, and with 3D's samples (gmm_core.sampling) and a 3D cell's
-# prior from its neighbourhood (gmm_core.smoothing), 0.6 serve a 3D map as well as 1 did before, with
-# a third of the rays (docs/BENCHMARKS.md, thirtieth session).
-BUSY_SAMPLES_PER_CELL = {2: 1.0, 3: 0.6}
+# dimension: a 3D ray costs tens of 2D ones, and with a 3D cell's prior from its neighbourhood
+# (gmm_core.smoothing) 0.3 samples per cell serve a 3D map about as well as 1 did before
+# (docs/BENCHMARKS.md, thirtieth session).
+BUSY_SAMPLES_PER_CELL = {2: 1.0, 3: 0.3}
 BUSY_REPOSE_CELLS = 1.0  # the same in an update with busy tracers, whose fewer samples are noisier than that
 # Thinned nodes a tile traces again with every sample per update while the tracers are idle: a refinement
 # is a background update like any other, and one of a whole tile would hold the tracers for seconds.

@@ -458,10 +458,10 @@ def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_with_the_neighbo
         )
         for n in range(3)
     ]
-    fleet = fleet_of(scans, busy_samples_per_cell={3: 0.6})
+    fleet = fleet_of(scans, busy_samples_per_cell={3: 0.3})
     grid = Grid(np.full(3, -4.05), 0.25, (32,) * 3)  # off the lattice: a tile of its own, not a layer's window
     thinned = fleet.occupancy_answer(grid, patience=0.0)
-    assert thinned.samples_per_cell == 0.6
-    hits, misses = offline_counts(scans, None, {n: 0.6 for n in range(3)}, grid)
-    assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.6, fleet.prior))
+    assert thinned.samples_per_cell == 0.3
+    hits, misses = offline_counts(scans, None, {n: 0.3 for n in range(3)}, grid)
+    assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.3, fleet.prior))
     assert not np.array_equal(thinned.prob, map_estimate(hits, misses, fleet.prior))
