@@ -1,22 +1,23 @@
 """The prior of Eq. 11 for Monte-Carlo counts of a 3D grid, taken from each cell's neighbourhood.
 
-The hit and miss counts of a Monte-Carlo reconstruction (Eq. 10) carry a noise that falls as
-1 / sqrt(samples per cell). Eq. 11's Beta prior (N_p beams each way, p = 0.5) is the same for every
+The hit and miss counts of a Monte-Carlo reconstruction (Eq. 10) carry a noise whose variance falls
+as 1 / (samples per cell). Eq. 11's Beta prior (N_p beams each way, p = 0.5) is the same for every
 cell; for 3D counts it is taken from the cell's neighbourhood instead (empirical Bayes): the counts
 smoothed by the separable kernel [c, 1 - 2c, c] along each axis (c = NEIGHBOURHOOD_WEIGHT) give an
 estimate p_nb by Eq. 11, which enters as a prior worth N_0 beams,
 
-    theta = (N_H + N_0 p_nb + N_p) / (N_H + N_M + N_0 + 2 N_p),    N_0 = PRIOR_BEAMS_AT_ONE / sqrt(samples per cell),
+    theta = (N_H + N_0 p_nb + N_p) / (N_H + N_M + N_0 + 2 N_p),    N_0 = PRIOR_BEAMS_AT_ONE / samples per cell,
 
 so a cell seen by few rays takes most of its estimate from around it and a well-seen cell keeps its
-own; fewer samples, a stronger prior. Measured (docs/BENCHMARKS.md, thirtieth session), AUROC of
-Eq. 11 as printed -> with this prior, at 1 / 4 samples per cell: BALM OS0 at 0.2 m against the raw
-grid 0.9921 -> 0.9956 / 0.9963 -> 0.9967; the mine map's 3D region against the world 0.9926 ->
-0.9972 / 0.9949 -> 0.9975, over its best-seen cells 0.9961 -> 0.9970 / 0.9973 -> 0.9974; 0.3 samples
-per cell with it are about as good as 1 without. Where points are very sparse it can cost: BALM
-with 10 % of its points 0.9602 -> 0.9561 in bench/lidar.py (Kurt3D and the OctoMap scan at 10 %
-gained 0.012). (Smoothing the counts themselves, without the own-cell term, gained less and lost on
-the best-seen cells.)
+own; the prior weighs as much as the noise it stands in for. Measured (docs/BENCHMARKS.md, thirtieth
+session), AUROC of Eq. 11 as printed -> with this prior, at 1 / 4 samples per cell: BALM OS0 at 0.2 m
+against the raw grid 0.9921 -> 0.9956 / 0.9963 -> 0.9968; the mine map's 3D region against the world
+0.9926 -> 0.9972 / 0.9949 -> 0.9974, over its best-seen cells 0.9961 -> 0.9970 / 0.9973 -> 0.9974;
+0.3 samples per cell with it are about as good as 1 without. It is not better everywhere: the mine
+sim's whole graded map 0.9931 -> 0.9923, BALM with 10 % of its points 0.9602 -> 0.9579 (Kurt3D and
+the OctoMap scan at 10 % gained 0.015 and 0.012). With N_0 / sqrt(samples per cell) instead, the
+prior cost more at 4 (0.9918, 0.9561); smoothing the counts themselves, without the cell's own
+term, gained less and lost on the best-seen cells.
 
 2D grids keep Eq. 11 as printed: on the Intel log at the default 4 samples per cell, smoothed counts
 (c = 0.05) lowered AUROC against the raw grid by 0.0003-0.0024 (0.05 and 0.1 m).
@@ -31,7 +32,7 @@ import numpy as np
 from numba import njit
 
 NEIGHBOURHOOD_WEIGHT = 0.125  # c of the kernel that makes p_nb; 0.25 gained at few samples, lost at 4
-PRIOR_BEAMS_AT_ONE = 16.0  # N_0 at one sample per cell; 10 and 16 measured alike, 8-64 tried
+PRIOR_BEAMS_AT_ONE = 16.0  # N_0 at one sample per cell; 8-64 tried at 0.25-4 samples per cell
 
 
 def prior_beams(samples_per_cell: float, dim: int) -> float:
@@ -39,7 +40,7 @@ def prior_beams(samples_per_cell: float, dim: int) -> float:
     `dim`-D grid (0: none)."""
     if dim != 3:
         return 0.0
-    return PRIOR_BEAMS_AT_ONE / float(np.sqrt(samples_per_cell))
+    return PRIOR_BEAMS_AT_ONE / float(samples_per_cell)
 
 
 def smoothed(counts: np.ndarray, weight: float) -> np.ndarray:

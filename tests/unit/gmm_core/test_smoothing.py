@@ -51,7 +51,7 @@ def test_bad_weights_are_refused_by_name():
 
 def test_the_prior_weakens_with_the_samples_and_is_3d_only():
     assert prior_beams(1.0, 3) == PRIOR_BEAMS_AT_ONE
-    assert prior_beams(4.0, 3) == pytest.approx(PRIOR_BEAMS_AT_ONE / 2)
+    assert prior_beams(4.0, 3) == PRIOR_BEAMS_AT_ONE / 4
     assert prior_beams(0.3, 2) == prior_beams(4.0, 2) == 0.0
 
 
