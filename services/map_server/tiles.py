@@ -179,11 +179,13 @@ class TileCache:
         self.prior = prior
         self.samples_per_cell = samples_per_cell
         self.report_slow = report_slow
-        by_dim = busy_samples_per_cell if isinstance(busy_samples_per_cell, Mapping) else {}
+
+        def thinning(spc: float | None) -> float | None:
+            return spc if spc is not None and spc < samples_per_cell else None
+
+        given = busy_samples_per_cell
         self._busy_samples_per_cell = {
-            dim: spc if spc is not None and spc < samples_per_cell else None
-            for dim in (2, 3)
-            for spc in [by_dim.get(dim) if by_dim else busy_samples_per_cell]
+            dim: thinning(given.get(dim) if isinstance(given, Mapping) else given) for dim in (2, 3)
         }
         self._tiles: OrderedDict[tuple, Tile] = OrderedDict()
         self._bytes = 0
