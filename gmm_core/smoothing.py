@@ -48,22 +48,22 @@ def smoothed(counts: np.ndarray, weight: float) -> np.ndarray:
     `counts` itself (as float64) for weight 0. A new array: the input is not changed."""
     if not 0.0 <= weight <= 1.0 / 3.0:
         raise ValueError(f"weight: the kernel [c, 1 - 2c, c] needs 0 <= c <= 1/3, got {weight}")
-    counts = np.asarray(counts, dtype=np.float64)
+    counts = np.ascontiguousarray(counts, dtype=np.float64)
     if weight == 0.0 or counts.size == 0:
         return counts
-    out = np.ascontiguousarray(counts).copy()
-    scratch = np.empty_like(out)
-    shape = out.shape
-    for axis in range(out.ndim):
+    src, shape = counts, counts.shape
+    buffers = np.empty_like(counts), np.empty_like(counts)  # the passes alternate between them
+    for axis in range(counts.ndim):
+        dst = buffers[axis % 2]
         # The array as (before, along, after): the axis to smooth in the middle, C order kept.
         before, after = int(np.prod(shape[:axis])), int(np.prod(shape[axis + 1 :]))
         view = (before, shape[axis], after)
         if after == 1:  # the last axis: its own loop, which vectorises along the axis
-            _smooth_rows(out.reshape(view[:2]), scratch.reshape(view[:2]), weight)
+            _smooth_rows(src.reshape(view[:2]), dst.reshape(view[:2]), weight)
         else:
-            _smooth_axis(out.reshape(view), scratch.reshape(view), weight)
-        out, scratch = scratch, out
-    return out
+            _smooth_axis(src.reshape(view), dst.reshape(view), weight)
+        src = dst
+    return src
 
 
 @njit(cache=True, nogil=True)

@@ -22,8 +22,8 @@ def reference(counts: np.ndarray, c: float) -> np.ndarray:
 @pytest.mark.parametrize("shape", [(7, 5, 3), (1, 9, 4), (6, 1, 1), (2, 2), (11,), (3, 4, 5, 2)])
 def test_smoothed_matches_the_padded_convolution(shape):
     rng = np.random.default_rng(len(shape) * 10 + shape[0])
-    for c in (0.0, 0.05, NEIGHBOURHOOD_WEIGHT, 1.0 / 3.0):
-        counts = rng.exponential(size=shape).astype(np.float32)
+    for c, dtype in zip((0.0, 0.05, NEIGHBOURHOOD_WEIGHT, 1.0 / 3.0), (np.float32, np.float64) * 2):
+        counts = rng.exponential(size=shape).astype(dtype)
         before = counts.copy()
         out = smoothed(counts, c)
         assert out.dtype == np.float64 and out.shape == counts.shape
