@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from gmm_core.smoothing import NEIGHBOURHOOD_WEIGHT, prior_beams, smoothed
+from gmm_core.smoothing import neighbourhood_estimate, prior_beams
 
 DEFAULT_PRIOR = 0.2  # N_p: measured on Intel (docs/BENCHMARKS.md), better than 1 for sparse data
 
@@ -43,11 +43,7 @@ def monte_carlo_estimate(
     if n0 == 0.0:
         return map_estimate(hits, misses, prior)
     hits, misses = _checked(hits, misses, prior, np.float64)
-    around = smoothed(hits, NEIGHBOURHOOD_WEIGHT), smoothed(misses, NEIGHBOURHOOD_WEIGHT)
-    out = np.empty(hits.shape, np.float32)
-    h, m, h_nb, m_nb = (np.ascontiguousarray(a).reshape(-1) for a in (hits, misses, *around))
-    _neighbourhood_estimate(h, m, h_nb, m_nb, n0, prior, out.reshape(-1))
-    return out
+    return neighbourhood_estimate(hits, misses, n0, prior)
 
 
 def _checked(hits, misses, prior: float, dtype=None) -> tuple[np.ndarray, np.ndarray]:
@@ -58,14 +54,6 @@ def _checked(hits, misses, prior: float, dtype=None) -> tuple[np.ndarray, np.nda
     if hits.shape != misses.shape:
         raise ValueError(f"misses: shape {misses.shape} differs from the hits' {hits.shape}")
     return hits, misses
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _neighbourhood_estimate(hits, misses, hits_around, misses_around, n0, prior, out):
-    """theta = (h + n0 p_nb + p) / (h + m + n0 + 2 p), p_nb Eq. 11 of the smoothed counts, cell by cell."""
-    for i in range(out.shape[0]):
-        p_nb = (hits_around[i] + prior) / (hits_around[i] + misses_around[i] + 2.0 * prior)
-        out[i] = (hits[i] + n0 * p_nb + prior) / (hits[i] + misses[i] + n0 + 2.0 * prior)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
