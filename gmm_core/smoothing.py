@@ -46,7 +46,7 @@ def prior_beams(samples_per_cell: float, dim: int) -> float:
 
 
 def neighbourhood_estimate(hits: np.ndarray, misses: np.ndarray, n0: float, prior: float) -> np.ndarray:
-    """theta = (N_H + N_0 p_nb + N_p) / (N_H + N_M + N_0 + 2 N_p) of each cell of float64 3D counts
+    """theta = (N_H + N_0 p_nb + N_p) / (N_H + N_M + N_0 + 2 N_p) of each cell of 3D counts
     (z, y, x), p_nb Eq. 11 of the counts smoothed with c = NEIGHBOURHOOD_WEIGHT; float32."""
     if hits.ndim != 3 or misses.shape != hits.shape:
         raise ValueError(f"hits, misses: 3D counts of one shape expected, got {hits.shape} and {misses.shape}")

@@ -10,7 +10,7 @@ import os
 # One BLAS and OpenMP thread a test process, set before numpy or scikit-learn load their libraries
 # (and inherited by pytest-xdist's workers and every process a test starts): two workers on two
 # cores, each with OpenBLAS's and scikit-learn's OpenMP threads waiting in spin loops, ran the fit
-# tests that compare with scikit-learn in 95 s instead of 56 s (docs/BENCHMARKS.md, thirty-first
+# tests that compare with scikit-learn in 95 s instead of 44 s (docs/BENCHMARKS.md, thirty-first
 # session). An explicit setting wins.
 for _threads in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_threads, "1")
