@@ -42,15 +42,15 @@ def monte_carlo_estimate(
     n0 = prior_beams(samples_per_cell, np.ndim(hits))
     if n0 == 0.0:
         return map_estimate(hits, misses, prior)
-    hits, misses = _checked(hits, misses, prior, np.float64)
+    hits, misses = _checked(hits, misses, prior)
     return neighbourhood_estimate(hits, misses, n0, prior)
 
 
-def _checked(hits, misses, prior: float, dtype=None) -> tuple[np.ndarray, np.ndarray]:
-    """(hits, misses) as arrays (of `dtype`), or a ValueError naming the field that is wrong."""
+def _checked(hits, misses, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """(hits, misses) as arrays, or a ValueError naming the field that is wrong."""
     if prior <= 0:
         raise ValueError(f"prior: N_p must be positive, got {prior}")
-    hits, misses = np.asarray(hits, dtype=dtype), np.asarray(misses, dtype=dtype)
+    hits, misses = np.asarray(hits), np.asarray(misses)
     if hits.shape != misses.shape:
         raise ValueError(f"misses: shape {misses.shape} differs from the hits' {hits.shape}")
     return hits, misses
