@@ -36,6 +36,11 @@ def test_neighbourhood_estimate_matches_the_padded_convolution(shape):
         assert got.dtype == np.float32 and got.shape == shape
         np.testing.assert_allclose(got, neighbourhood_reference(hits, misses, n0), rtol=1e-6)
     assert np.array_equal(hits, before[0]) and np.array_equal(misses, before[1])  # the counts are left alone
+    view = (slice(None), slice(None, None, -1), slice(None, None, 2))  # a strided window, float32 hits
+    got = neighbourhood_estimate(hits[view].astype(np.float32), misses[view], 4.0, DEFAULT_PRIOR)
+    np.testing.assert_allclose(
+        got, neighbourhood_reference(hits[view].astype(np.float32), misses[view], 4.0), rtol=1e-6
+    )
 
 
 def test_a_constant_field_keeps_its_estimate_and_a_spike_reaches_its_26_neighbours_only():
