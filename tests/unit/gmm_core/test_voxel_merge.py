@@ -2,6 +2,9 @@
 neighbours by brute force, the pieces by scipy, the rounds of merges recomputed from scratch with
 numpy's determinants."""
 
+import functools
+from collections import defaultdict
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -72,9 +75,11 @@ def test_pieces_are_scipys_connected_components():
     assert (np.unique(np.column_stack([piece, expected]), axis=0).shape[0]) == count
 
 
-def log_likelihood(s, reg):
-    """n log n - n/2 log det(Sigma + reg I) of a group's sums [n, sum x, upper sum x x^T]."""
-    n, mean = s[0], s[1:4] / s[0]
+@functools.cache
+def log_likelihood(s: tuple[float, ...], reg: float) -> float:
+    """n log n - n/2 log det(Sigma + reg I) of a group's sums [n, sum x, upper sum x x^T] (a tuple:
+    the rounds ask for the same group's again and again)."""
+    n, mean = s[0], np.array(s[1:4]) / s[0]
     second = np.zeros((3, 3))
     second[np.triu_indices(3)] = s[4:]
     second = second + np.triu(second, 1).T
@@ -86,15 +91,21 @@ def reference_merge(sums, edges, n_groups, reg):
     """_merge's rounds with every cost and every cheapest neighbour recomputed from the groups."""
     groups = {v: sums[v].copy() for v in range(len(sums))}
     owner = np.arange(len(sums))
+    neighbours = defaultdict(set)  # of each voxel
+    for u, v in edges:
+        neighbours[u].add(v)
+        neighbours[v].add(u)
 
     def cost(a, b):
         return (
-            log_likelihood(groups[a], reg) + log_likelihood(groups[b], reg) - log_likelihood(groups[a] + groups[b], reg)
+            log_likelihood(tuple(groups[a]), reg)
+            + log_likelihood(tuple(groups[b]), reg)
+            - log_likelihood(tuple(groups[a] + groups[b]), reg)
         )
 
     def cheapest(a):
-        others = {owner[v] for u, v in edges if owner[u] == a} | {owner[u] for u, v in edges if owner[v] == a}
-        return min(((cost(a, b), b) for b in others - {a}), default=(np.inf, -1))
+        others = {owner[w] for v in np.flatnonzero(owner == a) for w in neighbours[v]} - {a}
+        return min(((cost(a, b), b) for b in others), default=(np.inf, -1))
 
     while len(groups) > n_groups:
         best = {a: cheapest(a) for a in sorted(groups)}
