@@ -26,12 +26,9 @@ PACKAGES = ("gmm_core", "services", "protocol")
 # 3D: 60 s on an empty cache on a 2-core AMD EPYC) and a simulated robot's in a 2D world, then in a
 # 3D one (45 s each alone, the simulator's kernels compiled once). A third process for the 3D
 # robot compiled the simulator's kernels a second time, on no core of its own: 112-120 s against
-# 92-97 s for the two (docs/BENCHMARKS.md, twenty-ninth session). The server's, the shorter, also
-# compiles the offline maps' kernels (support.offline_kernels), which tests compiled as they ran.
+# 92-97 s for the two (docs/BENCHMARKS.md, twenty-ninth session).
 WARM_UPS = (
-    SERVER_WARM_UP
-    + f"; import sys; sys.path.insert(0, {str(Path(__file__).parents[1])!r})"
-    + "; from support.offline_kernels import warm_offline_kernels; warm_offline_kernels()",
+    SERVER_WARM_UP,
     "from gmm_core import FitConfig; from services.sim.warmup import warm_robot_kernels; "
     + "; ".join(f"warm_robot_kernels({world!r}, FitConfig(), 'q')" for world in ("office", "mine")),
 )
