@@ -277,17 +277,20 @@ def warehouse(seed: int = 0, size: tuple[float, float] = (60.0, 40.0)) -> World:
     return World("warehouse", raster, solid)
 
 
-def _value_noise(lattice: np.ndarray, spacing: float, x, y, z) -> np.ndarray:
-    """Smooth noise in [-1, 1]: trilinear interpolation of random lattice values, smoothstep weights."""
-    u = [np.asarray(c) / spacing for c in (x, y, z)]
-    i = [np.floor(c).astype(np.int64) for c in u]
-    f = [(c - k) * (c - k) * (3 - 2 * (c - k)) for c, k in zip(u, i)]
+@njit(cache=True, inline="always")
+def _value_noise(lattice, spacing, x, y, z):
+    """Smooth noise in [-1, 1] at (x, y, z): trilinear interpolation of random lattice values,
+    smoothstep weights."""
+    u0, u1, u2 = x / spacing, y / spacing, z / spacing
+    i0, i1, i2 = int(np.floor(u0)), int(np.floor(u1)), int(np.floor(u2))
+    g0, g1, g2 = u0 - i0, u1 - i1, u2 - i2
+    f0, f1, f2 = g0 * g0 * (3 - 2 * g0), g1 * g1 * (3 - 2 * g1), g2 * g2 * (3 - 2 * g2)
     out = 0.0
     for cx in (0, 1):
         for cy in (0, 1):
             for cz in (0, 1):
-                w = (f[0] if cx else 1 - f[0]) * (f[1] if cy else 1 - f[1]) * (f[2] if cz else 1 - f[2])
-                out = out + w * lattice[i[0] + cx, i[1] + cy, i[2] + cz]
+                w = (f0 if cx else 1 - f0) * (f1 if cy else 1 - f1) * (f2 if cz else 1 - f2)
+                out = out + w * lattice[i0 + cx, i1 + cy, i2 + cz]
     return out
 
 
@@ -358,15 +361,32 @@ def _carve_capsule(solid, raster: Grid, p, q, radius: float, octaves) -> None:
     reach = radius + sum(amplitude for _, amplitude, _ in octaves)
     lo = np.maximum(np.floor((np.minimum(p, q) - reach) / raster.resolution).astype(int), 0)
     hi = np.minimum(np.ceil((np.maximum(p, q) + reach) / raster.resolution).astype(int), raster.shape)
-    x, y, z = (raster.origin[a] + (np.arange(lo[a], hi[a]) + 0.5) * raster.resolution for a in range(3))
-    x, y, z = x[None, None, :], y[None, :, None], z[:, None, None]
     axis = q - p
-    t = np.clip(((x - p[0]) * axis[0] + (y - p[1]) * axis[1] + (z - p[2]) * axis[2]) / axis.dot(axis), 0, 1)
-    dx, dy, dz = x - (p[0] + t * axis[0]), y - (p[1] + t * axis[1]), z - (p[2] + t * axis[2])
-    rough = sum(amplitude * _value_noise(lattice, spacing, x, y, z) for spacing, amplitude, lattice in octaves)
-    free = (dx * dx + dy * dy + dz * dz < (radius + rough) ** 2) & (dz > -0.7 * radius + 0.3 * rough)
-    block = solid[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]]
-    block &= ~free
+    spacings, amplitudes, lattices = zip(*octaves)
+    _carve(
+        solid, raster.origin, raster.resolution, lo, hi, p, axis, axis.dot(axis), radius,
+        np.array(spacings, dtype=np.float64), np.array(amplitudes, dtype=np.float64), tuple(lattices),
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _carve(solid, origin, resolution, lo, hi, p, axis, length2, radius, spacings, amplitudes, lattices):
+    """_carve_capsule's voxels lo .. hi - 1 (x, y, z), voxel by voxel: the roughness of every octave
+    summed in order, as numpy's arrays of the whole box did in 2.6 of the mine's 3.5 s."""
+    for k in range(lo[2], hi[2]):
+        z = origin[2] + (k + 0.5) * resolution
+        for j in range(lo[1], hi[1]):
+            y = origin[1] + (j + 0.5) * resolution
+            for i in range(lo[0], hi[0]):
+                x = origin[0] + (i + 0.5) * resolution
+                t = ((x - p[0]) * axis[0] + (y - p[1]) * axis[1] + (z - p[2]) * axis[2]) / length2
+                t = min(max(t, 0.0), 1.0)
+                dx, dy, dz = x - (p[0] + t * axis[0]), y - (p[1] + t * axis[1]), z - (p[2] + t * axis[2])
+                rough = 0.0
+                for o in range(len(lattices)):
+                    rough = rough + amplitudes[o] * _value_noise(lattices[o], spacings[o], x, y, z)
+                if dx * dx + dy * dy + dz * dz < (radius + rough) ** 2 and dz > -0.7 * radius + 0.3 * rough:
+                    solid[k, j, i] = False
 
 
 WORLDS = {"office": office, "warehouse": warehouse, "mine": mine}

@@ -22,7 +22,7 @@ from services.sim.trajectory import (
     plan_paths,
     robot_events,
 )
-from services.sim.worlds import World, make_world
+from services.sim.worlds import World, _carve_capsule, make_world
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +69,34 @@ def solid_near_reference(world: World, grid: Grid, margin: float):
     return (overlaps | outside).reshape(grid.array_shape)
 
 
+def carve_capsule_reference(solid, raster: Grid, p, q, radius: float, octaves) -> None:
+    """The rough capsule in whole numpy arrays over its box (the noise of every voxel at once)."""
+
+    def value_noise(lattice, spacing, x, y, z):
+        u = [np.asarray(c) / spacing for c in (x, y, z)]
+        i = [np.floor(c).astype(np.int64) for c in u]
+        f = [(c - k) * (c - k) * (3 - 2 * (c - k)) for c, k in zip(u, i)]
+        out = 0.0
+        for cx in (0, 1):
+            for cy in (0, 1):
+                for cz in (0, 1):
+                    w = (f[0] if cx else 1 - f[0]) * (f[1] if cy else 1 - f[1]) * (f[2] if cz else 1 - f[2])
+                    out = out + w * lattice[i[0] + cx, i[1] + cy, i[2] + cz]
+        return out
+
+    reach = radius + sum(amplitude for _, amplitude, _ in octaves)
+    lo = np.maximum(np.floor((np.minimum(p, q) - reach) / raster.resolution).astype(int), 0)
+    hi = np.minimum(np.ceil((np.maximum(p, q) + reach) / raster.resolution).astype(int), raster.shape)
+    x, y, z = (raster.origin[a] + (np.arange(lo[a], hi[a]) + 0.5) * raster.resolution for a in range(3))
+    x, y, z = x[None, None, :], y[None, :, None], z[:, None, None]
+    axis = q - p
+    t = np.clip(((x - p[0]) * axis[0] + (y - p[1]) * axis[1] + (z - p[2]) * axis[2]) / axis.dot(axis), 0, 1)
+    dx, dy, dz = x - (p[0] + t * axis[0]), y - (p[1] + t * axis[1]), z - (p[2] + t * axis[2])
+    rough = sum(amplitude * value_noise(lattice, spacing, x, y, z) for spacing, amplitude, lattice in octaves)
+    free = (dx * dx + dy * dy + dz * dz < (radius + rough) ** 2) & (dz > -0.7 * radius + 0.3 * rough)
+    solid[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]] &= ~free
+
+
 def dijkstra_cost(free, start, goal, offsets):
     shape = free.shape
     best = {start: 0.0}
@@ -104,6 +132,26 @@ def test_cast_matches_the_slab_reference(dim):
         slow = cast_reference(world, origin, directions, 2.0)
         assert np.array_equal(np.isinf(fast), np.isinf(slow))
         assert np.allclose(fast[np.isfinite(fast)], slow[np.isfinite(slow)], atol=1e-9)
+
+
+def test_carved_capsules_match_the_numpy_reference_voxel_for_voxel():
+    """The mine's tunnels, carved voxel by voxel, are the ones numpy's arrays carved (bit for bit:
+    the same operations in the same order), also where a capsule reaches past the raster."""
+    rng = np.random.default_rng(3)
+    raster = Grid(np.zeros(3), 0.1, (40, 30, 20))
+    size = np.array(raster.shape) * raster.resolution
+    octaves = [
+        (1.0, 0.25, rng.uniform(-1, 1, size=tuple((size / 1.0).astype(int) + 2))),
+        (0.35, 0.08, rng.uniform(-1, 1, size=tuple((size / 0.35).astype(int) + 2))),
+    ]
+    fast, slow = np.ones(raster.array_shape, dtype=bool), np.ones(raster.array_shape, dtype=bool)
+    for _ in range(6):
+        p, q = rng.uniform(-0.5, 1.0, 3) * size, rng.uniform(0.0, 1.2, 3) * size
+        radius = rng.uniform(0.3, 1.0)
+        _carve_capsule(fast, raster, p, q, radius, octaves)
+        carve_capsule_reference(slow, raster, p, q, radius, octaves)
+    assert 0 < (~fast).sum() < fast.size
+    assert np.array_equal(fast, slow)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
