@@ -358,11 +358,11 @@ def _lattice_tunnels(rng, n: int, loops: int) -> list[tuple[tuple[int, int], tup
 
 def _carve_capsule(solid, raster: Grid, p, q, radius: float, octaves) -> None:
     """Free the voxels within the rough capsule around segment pq and above its flattened floor."""
-    reach = radius + sum(amplitude for _, amplitude, _ in octaves)
+    spacings, amplitudes, lattices = zip(*octaves)
+    reach = radius + sum(amplitudes)
     lo = np.maximum(np.floor((np.minimum(p, q) - reach) / raster.resolution).astype(int), 0)
     hi = np.minimum(np.ceil((np.maximum(p, q) + reach) / raster.resolution).astype(int), raster.shape)
     axis = q - p
-    spacings, amplitudes, lattices = zip(*octaves)
     _carve(
         solid, raster.origin, raster.resolution, lo, hi, p, axis, axis.dot(axis), radius,
         np.array(spacings, dtype=np.float64), np.array(amplitudes, dtype=np.float64), tuple(lattices),
