@@ -65,19 +65,29 @@ def _read_source(args, config: GmmapConfig, keep_fraction: float = 1.0, seed: in
 
 def cmd_replay(args) -> int:
     from services.render import occupancy_png
-    from services.replay import replay
+    from services.replay import DEFAULT_RESOLUTION, MAX_REPLAY_CELLS, replay, replay_grid
 
     t0 = time.perf_counter()
     config = resolve_config(args)
     options = {} if args.origin is None else {"origin": tuple(args.origin)}
     scans, read = _read_source(args, config, args.keep_fraction, args.seed, **options)
+    fit = config.fit.for_dimension(scans[0].pose.dim if scans else 2)
+    resolution = args.resolution
+    if scans and resolution is None:  # said before the work: an outdoor lidar's extent is coarsened
+        resolution = replay_grid(scans, fit.max_range, None, args.bbox).resolution
+        if resolution != DEFAULT_RESOLUTION:
+            print(
+                f"gmmap replay: mapping at {resolution:g} m, the finest of {DEFAULT_RESOLUTION:g} m doubled that keeps "
+                f"the grid within {MAX_REPLAY_CELLS:,} cells (--resolution and --bbox choose)",
+                file=sys.stderr,
+            )
     start, bars = _progress_bars()
     result = replay(
         scans,
-        resolution=args.resolution,
+        resolution=resolution,
         bbox=args.bbox,
         method=args.method,
-        config=config.fit.for_dimension(scans[0].pose.dim if scans else 2),
+        config=fit,
         seed=args.seed,
         reconstruction=config.reconstruction,
         encoding=args.encoding,
@@ -253,12 +263,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="fit and reconstruct a log offline; write the map as npz and PNG")
     source_flags(p)
     keyframe_flags(p)
-    p.add_argument("--resolution", type=float, default=0.05, help="cell size, m")
+    p.add_argument(
+        "--resolution",
+        type=float,
+        default=None,
+        help="cell size, m (default 0.05, doubled while the grid would hold over 64 M cells)",
+    )
     p.add_argument(
         "--bbox",
         type=_floats,
         default=None,
-        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax (use --bbox=...)",
+        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax (use --bbox=...); default the data's extent",
     )
     p.add_argument("--keep-fraction", type=float, default=1.0, help="keep this seeded fraction of the beams")
     p.add_argument("--seed", type=int, default=0)

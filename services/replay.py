@@ -19,6 +19,11 @@ from services.datasets import RangeScan
 
 METHODS = ("mc", "analytic", "raw")
 KERNEL_POINTS = 1000  # points (and no-return beams) of the scan load_fit_kernels fits
+DEFAULT_RESOLUTION = 0.05  # m: a laser map's cell; doubled where the data's extent needs it (replay_grid)
+# Cells of a replay's grid at the most: float64 hit and miss counts while tracing, then the float32
+# counts and map, 28 bytes a cell at the peak (1.8 GB). An outdoor lidar's extent at 5 cm is
+# billions (BALM's, with its points to 140 m: 8.6 G).
+MAX_REPLAY_CELLS = 64_000_000
 
 
 @dataclass(frozen=True)
@@ -33,11 +38,43 @@ class ReplayMap:
 
 def data_extent(scans: Sequence[RangeScan], max_range: float, margin: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Box around every sensor origin and beam end (no-returns cut at max_range), plus a margin."""
-    ends = [
-        np.concatenate([s.pose.apply(s.hits), s.pose.apply(s.no_return * max_range), s.pose.t[None]]) for s in scans
-    ]
-    points = np.concatenate(ends)
-    return points.min(axis=0) - margin, points.max(axis=0) + margin
+    lo, hi = np.inf, -np.inf
+    for s in scans:  # scan by scan: a long lidar sequence's points at once would be gigabytes
+        ends = np.concatenate([s.pose.apply(s.hits), s.pose.apply(s.no_return * max_range), s.pose.t[None]])
+        lo, hi = np.minimum(lo, ends.min(axis=0)), np.maximum(hi, ends.max(axis=0))
+    return lo - margin, hi + margin
+
+
+def replay_grid(
+    scans: Sequence[RangeScan], max_range: float, resolution: float | None = None, bbox: Sequence[float] | None = None
+) -> Grid:
+    """The grid a replay maps: `bbox` (min corner exact; xmin, ymin[, zmin], xmax, ymax[, zmax]) or
+    the data's extent, at `resolution` m. None: DEFAULT_RESOLUTION, doubled until the grid holds at
+    most MAX_REPLAY_CELLS. ValueError naming the option when a resolution given makes more."""
+    dim = scans[0].pose.dim
+    if bbox is None:
+        lo, hi = data_extent(scans, max_range)
+    else:
+        if len(bbox) != 2 * dim:
+            raise ValueError(f"bbox: a {dim}D log needs {2 * dim} numbers, got {len(bbox)}")
+        lo, hi = np.asarray(bbox[:dim], float), np.asarray(bbox[dim:], float)
+    grid = Grid.from_bbox(lo, hi, _finest_fitting(lo, hi) if resolution is None else resolution)
+    if grid.n_cells > MAX_REPLAY_CELLS:
+        extent = " x ".join(f"{v:.0f}" for v in hi - lo)
+        raise ValueError(
+            f"resolution: {grid.resolution:g} m over {'the bbox' if bbox else 'the data'} ({extent} m) is "
+            f"{grid.n_cells:,} cells, more than the {MAX_REPLAY_CELLS:,} a replay maps; "
+            f"{_finest_fitting(lo, hi):g} m fits, or a smaller --bbox"
+        )
+    return grid
+
+
+def _finest_fitting(lo: np.ndarray, hi: np.ndarray) -> float:
+    """DEFAULT_RESOLUTION doubled until the box lo..hi holds at most MAX_REPLAY_CELLS cells."""
+    resolution = DEFAULT_RESOLUTION
+    while Grid.from_bbox(lo, hi, resolution).n_cells > MAX_REPLAY_CELLS:
+        resolution *= 2.0
+    return resolution
 
 
 def scan_message(model: ScanModel, scan: RangeScan, fleet: str = "replay", robot: str = "replay") -> ScanMessage:
@@ -75,7 +112,7 @@ def fit_scans(
 def replay(
     scans: Sequence[RangeScan],
     *,
-    resolution: float,
+    resolution: float | None = None,
     bbox: Sequence[float] | None = None,
     method: str = "mc",
     config: FitConfig = FitConfig(),
@@ -84,7 +121,8 @@ def replay(
     encoding: str = "q",
     progress: Callable[[str, int, int], Callable[[int], None]] | None = None,
 ) -> ReplayMap:
-    """The occupancy map of `scans` on the grid of `bbox` (min corner exact) or the data's extent.
+    """The occupancy map of `scans` on replay_grid's grid: `bbox` (min corner exact) or the data's
+    extent, at `resolution` (None: the finest that replay_grid allows, from 5 cm).
 
     Every scan model passes through the wire `encoding` ("q", "f32" or "none") first, so the
     offline map equals what a server builds. `progress(stage, total)` returns a callback told of work done.
@@ -96,13 +134,7 @@ def replay(
     dim = scans[0].pose.dim
     if method == "analytic" and dim != 2:
         raise ValueError("method: analytic maps are 2D only; use mc for 3D")
-    if bbox is None:
-        lo, hi = data_extent(scans, config.max_range)
-    else:
-        if len(bbox) != 2 * dim:
-            raise ValueError(f"bbox: a {dim}D log needs {2 * dim} numbers, got {len(bbox)}")
-        lo, hi = np.asarray(bbox[:dim], float), np.asarray(bbox[dim:], float)
-    grid = Grid.from_bbox(lo, hi, resolution)
+    grid = replay_grid(scans, config.max_range, resolution, bbox)
     tick = (lambda stage, total: progress(stage, total)) if progress else (lambda stage, total: None)
     if method == "raw":
         hits, misses = count_beams(

@@ -1,12 +1,16 @@
 """`gmmap replay` end to end on the real Intel log and a Kurt3D scan."""
 
 import numpy as np
+import pytest
 from PIL import Image
 
-from gmm_core import Grid
+import services.replay as replay_module
+from gmm_core import Grid, Pose
 from gmm_core.metrics import grid_auroc
 from gmm_core.reconstruct import count_beams
 from services.cli import main
+from services.datasets import RangeScan
+from services.replay import DEFAULT_RESOLUTION, MAX_REPLAY_CELLS, replay_grid
 
 # The stable bar of issue 2: the full Intel replay at 10 cm, against the raw grid of every beam.
 INTEL_AUROC_BAR = 0.97
@@ -68,6 +72,31 @@ def test_raw_method_and_3d_replay(data_dir, tmp_path):
         main(["replay", str(data_dir / "3d" / "kurt3d"), "--method", "raw", "--resolution", "0.5", "--out", str(out)])
         == 0
     )
+
+
+def test_replay_grid_coarsens_a_wide_extent_only_when_left_to_choose():
+    far = RangeScan(0, 0.0, Pose.identity(3), None, np.array([[0.0, 0.0, 0.0], [100.0, 100.0, 10.0]]), np.zeros((0, 3)))
+    near = RangeScan(0, 0.0, Pose.identity(3), None, np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 2.0]]), np.zeros((0, 3)))
+    assert replay_grid([near], 10.0).resolution == DEFAULT_RESOLUTION  # 11 x 11 x 3 m: 2.9 M cells
+    # 101 x 101 x 11 m: 905 M cells at 5 cm, 113 M at 10 cm, 14 M at 20 cm
+    grid = replay_grid([far], 10.0)
+    assert grid.resolution == 0.2 and grid.n_cells <= MAX_REPLAY_CELLS
+    assert replay_grid([far], 10.0, bbox=[0, 0, 0, 10, 10, 2]).resolution == DEFAULT_RESOLUTION
+    with pytest.raises(ValueError, match=r"resolution: 0.05 m over the data \(101 x 101 x 11 m\).*0.2 m fits"):
+        replay_grid([far], 10.0, 0.05)
+    assert replay_grid([far], 10.0, 0.3).resolution == 0.3
+
+
+def test_replay_of_a_wide_extent_says_the_resolution_it_chose(data_dir, tmp_path, monkeypatch, capsys):
+    # Kurt3D's extent (36 x 24 x 14 m): 91 M cells at 5 cm, 11 M at 10 cm, 1.4 M at 20 cm
+    monkeypatch.setattr(replay_module, "MAX_REPLAY_CELLS", 2_000_000)
+    out, kurt3d = tmp_path / "k.npz", str(data_dir / "3d" / "kurt3d")
+    assert main(["replay", kurt3d, "--method", "raw", "--out", str(out)]) == 0
+    chosen = float(np.load(out)["resolution"])
+    assert chosen == 0.2 and np.load(out)["prob"].size <= 2_000_000
+    assert "mapping at 0.2 m" in capsys.readouterr().err
+    assert main(["replay", kurt3d, "--method", "raw", "--resolution", "0.1", "--out", str(out)]) == 2
+    assert "0.2 m fits, or a smaller --bbox" in capsys.readouterr().err
 
 
 def test_bad_log_gives_a_clear_error_with_the_line(tmp_path, capsys):
