@@ -12,6 +12,7 @@ from gmm_core import FitConfig, Grid, ScanModel, fit_scan
 from gmm_core.analytic.evidence_2d import analytic_map_2d
 from gmm_core.occupancy import map_estimate, monte_carlo_estimate
 from gmm_core.pose import Pose
+from gmm_core.raytrace import MAX_CELLS as MAX_TRACED_CELLS
 from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import ScanMessage, decode, encode
@@ -20,9 +21,9 @@ from services.datasets import RangeScan
 METHODS = ("mc", "analytic", "raw")
 KERNEL_POINTS = 1000  # points (and no-return beams) of the scan load_fit_kernels fits
 DEFAULT_RESOLUTION = 0.05  # m: a laser map's cell; doubled where the data's extent needs it (replay_grid)
-# Cells of a replay's grid at the most: float64 hit and miss counts while tracing, then the float32
-# counts and map, 28 bytes a cell at the peak (1.8 GB). An outdoor lidar's extent at 5 cm is
-# billions (BALM's, with its points to 140 m: 8.6 G).
+# Cells of a grid replay_grid chooses at the most: float64 hit and miss counts while tracing, then
+# the float32 counts and map, 28 bytes a cell at the peak (1.8 GB). An outdoor lidar's extent at 5 cm
+# is billions (BALM's, with its points to 140 m: 8 G).
 MAX_REPLAY_CELLS = 64_000_000
 
 
@@ -50,7 +51,8 @@ def replay_grid(
 ) -> Grid:
     """The grid a replay maps: `bbox` (min corner exact; xmin, ymin[, zmin], xmax, ymax[, zmax]) or
     the data's extent, at `resolution` m. None: DEFAULT_RESOLUTION, doubled until the grid holds at
-    most MAX_REPLAY_CELLS. ValueError naming the option when a resolution given makes more."""
+    most MAX_REPLAY_CELLS; a resolution given is kept up to the tracer's limit (a machine with the
+    memory may map more), past it a ValueError names the option and what fits."""
     dim = scans[0].pose.dim
     if bbox is None:
         lo, hi = data_extent(scans, max_range)
@@ -59,12 +61,12 @@ def replay_grid(
             raise ValueError(f"bbox: a {dim}D log needs {2 * dim} numbers, got {len(bbox)}")
         lo, hi = np.asarray(bbox[:dim], float), np.asarray(bbox[dim:], float)
     grid = Grid.from_bbox(lo, hi, _finest_fitting(lo, hi) if resolution is None else resolution)
-    if grid.n_cells > MAX_REPLAY_CELLS:
+    if grid.n_cells > MAX_TRACED_CELLS:
         extent = " x ".join(f"{v:.0f}" for v in hi - lo)
         raise ValueError(
             f"resolution: {grid.resolution:g} m over {'the bbox' if bbox else 'the data'} ({extent} m) is "
-            f"{grid.n_cells:,} cells, more than the {MAX_REPLAY_CELLS:,} a replay maps; "
-            f"{_finest_fitting(lo, hi):g} m fits, or a smaller --bbox"
+            f"{grid.n_cells:,} cells, more than the {MAX_TRACED_CELLS:,} a trace can number; "
+            f"{_finest_fitting(lo, hi):g} m makes at most {MAX_REPLAY_CELLS:,}, or give a smaller --bbox"
         )
     return grid
 
