@@ -146,18 +146,19 @@ def aurocs(name: str, config, settings, fractions, stretch: float) -> list[tuple
     rows = []
     for fraction in fractions:
         scans = read(name, fraction, stretch)
-        gmm = replay(
-            scans,
-            resolution=RESOLUTION,
-            bbox=bbox,
-            method="mc",
-            config=config,
-            seed=0,
-            reconstruction=settings.reconstruction,
-            encoding="q",
-        ).prob
-        a_gmm = grid_auroc(gmm, *truth)
-        del gmm
+        a_gmm = grid_auroc(
+            replay(
+                scans,
+                resolution=RESOLUTION,
+                bbox=bbox,
+                method="mc",
+                config=config,
+                seed=0,
+                reconstruction=settings.reconstruction,
+                encoding="q",
+            ).prob,
+            *truth,
+        )
         a_raw = grid_auroc(replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config).prob, *truth)
         tree = octomap_tree(scans, RESOLUTION, MAX_RANGE)
         a_oct = grid_auroc(octomap_prob(tree, grid, observed), *truth)
