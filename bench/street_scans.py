@@ -4,14 +4,17 @@ A street of box buildings on flat ground (z = 0), 16 more boxes scattered to 170
 OS1-64-like sensor (1,024 x 64 beams, elevations -22.5..22.5 deg, 1.8 m above the ground, 2 cm range
 noise) driving along x, 5 m a scan; 45 % of the beams drop their return at random, so that a scan
 holds ~30k points (the issue's outdoor OS1-64: 36-37k), its median range 17 m, its farthest 170 m.
-Written as organised binary PCDs (no return: 0, 0, 0, as ouster-ros writes it) with KITTI poses:
+Written as organised binary PCDs (no return: 0, 0, 0, as ouster-ros writes it) with KITTI poses,
+and the boxes' corners (boxes.npy, (n, 2, 3)) for bench/street_truth.py:
 
     .venv/bin/python bench/street_scans.py /tmp/street
     .venv/bin/python bench/lidar.py --data /tmp/street --format pcd --poses /tmp/street/poses.txt
+    .venv/bin/python bench/street_truth.py /tmp/street
 
 Walls and ground are exact planes: the raw grid of every point (bench/lidar.py's truth) is what
 OctoMap's ray casting of the same points reproduces, the hardest case for a model that spans the
-rings (docs/BENCHMARKS.md, thirty-third session).
+rings; bench/street_truth.py grades the maps against the street itself (docs/BENCHMARKS.md,
+thirty-third session).
 """
 
 from __future__ import annotations
@@ -90,6 +93,7 @@ def main() -> None:
         poses.append(f"1 0 0 {origin[0]:g} 0 1 0 {origin[1]:g} 0 0 1 {origin[2]:g}\n")
         print(f"{k:06d}.pcd: {np.count_nonzero(r)} points, median range {np.median(r[r > 0]):.1f} m")
     (args.out / "poses.txt").write_text("".join(poses))
+    np.save(args.out / "boxes.npy", np.stack([lo, hi], axis=1))
 
 
 if __name__ == "__main__":
