@@ -16,13 +16,11 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from lidar import MAX_RANGE, RESOLUTION, evaluation_bbox, within_range
+from lidar import MAX_RANGE, RESOLUTION, SETS, evaluation_bbox, read
 from octomap_compare import observed_centres, octomap_prob, octomap_tree
 
-from gmm_core import Grid
 from gmm_core.metrics import auroc
 from services.config import load_config
-from services.datasets import read_scans
 from services.replay import replay
 
 
@@ -42,14 +40,11 @@ def main() -> None:
     settings = load_config()
     config = settings.fit.for_dimension(3)
 
-    def read(fraction: float):
-        scans = read_scans(args.street, fmt="pcd", poses=args.street / "poses.txt", keep_fraction=fraction, seed=0)
-        return [within_range(s) for s in scans]
-
-    every = read(1.0)
+    SETS["street"] = (args.street, {"fmt": "pcd", "poses": args.street / "poses.txt"})
+    every = read("street")
     bbox = evaluation_bbox(every)
     truth = replay(every, resolution=RESOLUTION, bbox=bbox, method="raw", config=config)
-    grid: Grid = truth.grid
+    grid = truth.grid
     observed = (truth.hits + truth.misses) > 0
     raw_occupied = (truth.hits > truth.misses)[observed]
     solid = in_solid(observed_centres(grid, observed), np.load(args.street / "boxes.npy"), RESOLUTION / 2)
@@ -59,7 +54,7 @@ def main() -> None:
     print("| points kept | GMM / OctoMap / raw grid, against the raw grid of all points | against the street |")
     print("|---|---|---|")
     for fraction in args.fractions:
-        scans = every if fraction == 1.0 else read(fraction)
+        scans = every if fraction == 1.0 else read("street", fraction)
         maps = {
             "GMM": replay(
                 scans,
