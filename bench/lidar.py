@@ -14,7 +14,10 @@ GMM and OctoMap see the same points (OctoMap: defaults, maxrange 60 m, 0.2 m):
   observed left out), at keep fractions 1.0 / 0.3 / 0.1 (seeded per scan as `--keep-fraction`):
   GMM `replay(method="mc")` with the defaults through the `q` codec, OctoMap (maxrange 60 m)
   read at the cell centres, the raw grid of the kept points; and the kept points' messages in
-  `q` against their float32 xyz (a sparser scan must not send more per point).
+  `q` against their float32 xyz (a sparser scan must not send more per point). Beside each AUROC
+  (a ranking, blind to where the map draws its classes), the share of the raw grid's occupied cells
+  that the GMM's and OctoMap's maps call free by Eq. 12's classes (sigma^2 of the configuration's
+  `reconstruction.variance`): the error a robot planning through the map must not make.
 - guard: on the first scan, a seeded subsample of `--sklearn-points` points (0: all), K as the
   defaults choose it for them; mean log-likelihood per point of `fit_scan`'s mixture and of
   scikit-learn's GaussianMixture(K, full, reg_covar 1e-4, random_state 0) on the same points;
@@ -56,7 +59,7 @@ import octomap
 from octomap_compare import aligned_bbox, insert_scan, machine_line, octomap_prob, octomap_tree
 
 from gmm_core import FitConfig, Pose, fit_scan
-from gmm_core.metrics import grid_auroc
+from gmm_core.metrics import called_free, grid_auroc
 from gmm_core.voxel_em import fit_mixture_voxels
 from protocol import encode
 from services.config import load_config
@@ -143,28 +146,29 @@ def aurocs(name: str, config, settings, fractions, stretch: float) -> list[tuple
     grid, truth = truth_map.grid, (truth_map.hits, truth_map.misses)
     del truth_map  # its prob: an outdoor sequence's 60 m reach is 10^8 cells at 0.2 m, each map graded then dropped
     observed = (truth[0] + truth[1]) > 0
+    occupied, variance = truth[0] > truth[1], settings.reconstruction.variance
     rows = []
     for fraction in fractions:
         scans = read(name, fraction, stretch)
-        a_gmm = grid_auroc(
-            replay(
-                scans,
-                resolution=RESOLUTION,
-                bbox=bbox,
-                method="mc",
-                config=config,
-                seed=0,
-                reconstruction=settings.reconstruction,
-                encoding="q",
-            ).prob,
-            *truth,
-        )
+        gmm = replay(
+            scans,
+            resolution=RESOLUTION,
+            bbox=bbox,
+            method="mc",
+            config=config,
+            seed=0,
+            reconstruction=settings.reconstruction,
+            encoding="q",
+        ).prob
+        a_gmm, free_gmm = grid_auroc(gmm, *truth), called_free(gmm, occupied, variance)
+        del gmm
         a_raw = grid_auroc(replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config).prob, *truth)
         tree = octomap_tree(scans, RESOLUTION, MAX_RANGE)
-        a_oct = grid_auroc(octomap_prob(tree, grid, observed), *truth)
-        del tree
+        oct_prob = octomap_prob(tree, grid, observed)
+        a_oct, free_oct = grid_auroc(oct_prob, *truth), called_free(oct_prob, occupied, variance)
+        del tree, oct_prob
         share = q_bytes(scans, config) / sum(12 * len(s.hits) for s in scans)
-        rows.append((fraction, a_gmm, a_oct, a_raw, observed.sum(), share))
+        rows.append((fraction, a_gmm, a_oct, a_raw, free_gmm, free_oct, observed.sum(), share))
     return rows
 
 
@@ -291,11 +295,17 @@ def main() -> None:
             f"{int((ratio >= TARGET_RATIO).sum())} of {len(ratio)} scans at {TARGET_RATIO}x or more"
         )
     if quality:
-        print("\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | cells scored | q / raw xyz |")
-        print("|---|---|---|---|---|---|---|")
+        print(
+            "\n| data | points kept | AUROC GMM | AUROC OctoMap | AUROC raw grid | occupied called free, GMM / "
+            "OctoMap | cells scored | q / raw xyz |"
+        )
+        print("|---|---|---|---|---|---|---|---|")
         for name, rows in quality.items():
-            for f, a_gmm, a_oct, a_raw, cells, share in rows:
-                print(f"| {name} | {f:.0%} | {a_gmm:.4f} | {a_oct:.4f} | {a_raw:.4f} | {cells:,} | {share:.2%} |")
+            for f, a_gmm, a_oct, a_raw, free_gmm, free_oct, cells, share in rows:
+                print(
+                    f"| {name} | {f:.0%} | {a_gmm:.4f} | {a_oct:.4f} | {a_raw:.4f} | {free_gmm:.1%} / {free_oct:.1%} "
+                    f"| {cells:,} | {share:.2%} |"
+                )
     print(
         "\n| data, first scan | points | K | log-lik/point ours | scikit-learn | ours - scikit-learn "
         "| ours s | scikit-learn s | scikit-learn's other seeds - seed 0 | converged voxel EM (s) |"

@@ -5,7 +5,8 @@ kept, that truth is the ray casting of the very points OctoMap casts. Here the s
 the defaults through `q`, OctoMap with maxrange 60 m, the raw grid of the kept points; points beyond
 60 m dropped as there) are also graded against the geometry the scans were made from: on the cells
 the raw grid of all points observed, occupied where the cell has volume in a solid (the ground,
-z <= 0, or a box). AUROC both ways, at each keep fraction:
+z <= 0, or a box). AUROC both ways, at each keep fraction, and the share of the occupied cells each
+map calls free (Eq. 12's classes, the configuration's sigma^2) both ways:
 
     .venv/bin/python bench/street_truth.py /tmp/street [--fractions 1.0 0.3]
 """
@@ -19,7 +20,7 @@ import numpy as np
 from lidar import MAX_RANGE, RESOLUTION, SETS, evaluation_bbox, read
 from octomap_compare import observed_centres, octomap_prob, octomap_tree
 
-from gmm_core.metrics import auroc
+from gmm_core.metrics import auroc, called_free
 from services.config import load_config
 from services.replay import replay
 
@@ -51,8 +52,11 @@ def main() -> None:
     del truth
     occupied = f"{raw_occupied.sum():,} in the raw grid, {solid.sum():,} in a solid"
     print(f"{observed.sum():,} cells observed; occupied: {occupied}")
-    print("| points kept | GMM / OctoMap / raw grid, against the raw grid of all points | against the street |")
-    print("|---|---|---|")
+    print(
+        "| points kept | GMM / OctoMap / raw grid, against the raw grid of all points | against the street "
+        "| occupied called free: of the raw grid's | of the street's |"
+    )
+    print("|---|---|---|---|---|")
     for fraction in args.fractions:
         scans = every if fraction == 1.0 else read("street", fraction)
         maps = {
@@ -67,10 +71,11 @@ def main() -> None:
             "OctoMap": octomap_prob(octomap_tree(scans, RESOLUTION, MAX_RANGE), grid, observed)[observed],
             "raw": replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config).prob[observed],
         }
-        against = [
-            " / ".join(f"{auroc(p, truth_cells):.4f}" for p in maps.values()) for truth_cells in (raw_occupied, solid)
-        ]
-        print(f"| {fraction:.0%} | {against[0]} | {against[1]} |", flush=True)
+        truths = (raw_occupied, solid)
+        against = [" / ".join(f"{auroc(p, cells):.4f}" for p in maps.values()) for cells in truths]
+        variance = settings.reconstruction.variance
+        free = [" / ".join(f"{called_free(p, cells, variance):.1%}" for p in maps.values()) for cells in truths]
+        print(f"| {fraction:.0%} | {against[0]} | {against[1]} | {free[0]} | {free[1]} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
-"""Map quality: area under the ROC curve."""
+"""Map quality: area under the ROC curve, and the occupied cells a map calls free."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from gmm_core.occupancy import FREE, classify
 
 
 def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -33,3 +35,15 @@ def grid_auroc(prob: np.ndarray, truth_hits: np.ndarray, truth_misses: np.ndarra
     """AUROC of `prob` against a counting grid: occupied where hits > misses, cells never seen left out."""
     observed = (truth_hits + truth_misses) > 0
     return auroc(prob[observed], (truth_hits > truth_misses)[observed])
+
+
+def called_free(prob: np.ndarray, occupied: np.ndarray, variance: float) -> float:
+    """The share of the `occupied` cells (a mask over `prob`) that `prob` classifies FREE by Eq. 12
+    with sigma^2 = `variance`: the error a robot planning through the map must not make, and one that
+    AUROC, a ranking, does not see (docs/BENCHMARKS.md, thirty-fourth session)."""
+    occupied = np.asarray(occupied, dtype=bool)
+    if occupied.shape != np.shape(prob):
+        raise ValueError(f"called_free: occupied must have prob's shape {np.shape(prob)}, got {occupied.shape}")
+    if not occupied.any():
+        raise ValueError("called_free: needs at least one occupied cell")
+    return float((classify(np.asarray(prob)[occupied], variance) == FREE).mean())

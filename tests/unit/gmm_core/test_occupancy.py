@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score
 
-from gmm_core.metrics import auroc, grid_auroc
+from gmm_core.metrics import auroc, called_free, grid_auroc
 from gmm_core.occupancy import FREE, OCCUPIED, UNKNOWN, classify, map_estimate
 
 
@@ -58,3 +58,18 @@ def test_grid_auroc_leaves_out_unobserved_cells():
     truth_m = np.array([0.0, 3.0, 0.0, 1.0])
     prob = np.array([0.9, 0.1, 0.99, 0.2])
     assert grid_auroc(prob, truth_h, truth_m) == 1.0
+
+
+def test_called_free_counts_the_occupied_cells_below_the_free_threshold():
+    prob = np.array([[0.05, 0.29, 0.31], [0.5, 0.95, 0.01]])
+    occupied = np.array([[True, True, True], [True, True, False]])
+    # sigma^2 = 0.21: free below (1 - 0.4) / 2 = 0.3; the free cell at 0.01 is not an occupied one
+    assert called_free(prob, occupied, 0.21) == 2 / 5
+    assert called_free(prob, occupied, 0.0) == 0.0  # no band: p = 0 alone is free
+    rng = np.random.default_rng(5)
+    prob, occupied = rng.random((6, 7, 8)), rng.random((6, 7, 8)) < 0.2
+    assert called_free(prob, occupied, 0.09) == np.mean(classify(prob, 0.09)[occupied] == FREE)
+    with pytest.raises(ValueError, match="occupied"):
+        called_free(prob, occupied[:2], 0.21)
+    with pytest.raises(ValueError, match="occupied"):
+        called_free(prob, np.zeros_like(occupied), 0.21)
