@@ -19,6 +19,7 @@ from numba import njit
 from gmm_core.analytic.components import NEGLIGIBLE_SIGMA, holds_sensor
 from gmm_core.analytic.polygon import polygon_mass_exact
 from gmm_core.analytic.special import SQRT2, SQRT_2_OVER_PI, SQRT_2PI, SQRT_HALF_PI, erf_diff, norm_ppf_lower, norm_sf
+from gmm_core.scan_trace import HIT_STOP_CELLS
 
 # Gauss-Legendre rule on [-1, 1] for the slices of a cube (_cube_masses_3d).
 _SLICE_X, _SLICE_W = np.polynomial.legendre.leggauss(6)
@@ -132,8 +133,12 @@ def _clipped_slice_mass(alpha, beta, gamma, first, count, xa, ya, xb, yb):
 
 
 @njit(cache=True)
-def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
-    """(mass of the cube (Eq. 10), mass of C(V) (Eq. 3 plus the cube)), by slices across the thinnest axis.
+def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone, scale):
+    """(mass of the cube (Eq. 10), mass of C(V) (Eq. 3 plus the cube), mass of both) of the
+    component's samples x moved to sensor + `scale` (x - sensor), along their own rays, by slices
+    across the thinnest axis; the cube's mass is that of x itself (the moved samples in the cube
+    moved alike). A sample is a miss of the cube where its moved point lies in C(V) and it is not in
+    the cube: the second mass less the third (with `scale` 1, the second less the first).
 
     In the eigenbasis the offset z along the thinnest eigenvector is independent of the in-plane
     coordinates, so each mass is the integral over z of the exact mass of a convex slice (Eq. 10
@@ -146,28 +151,38 @@ def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
     if not with_cone:
         n_cone = 0
     rows = 6 + n_cone
-    sn = math.sqrt(evals[0])
+    moved = scale != 1.0
+    centre = np.empty(3)  # the moved component's mean; its axes' sigmas are scale times the component's
+    cube = np.empty((8, 3))  # the cube moved with the samples
+    for j in range(3):
+        centre[j] = sensor[j] + scale * (mean[j] - sensor[j])
+        for k in range(8):
+            cube[k, j] = sensor[j] + scale * (corners[k, j] - sensor[j])
+        offsets[2 * j], offsets[2 * j + 1] = cube[0, j], -cube[7, j]
+    sn = scale * math.sqrt(evals[0])
     alpha, beta = np.empty(rows), np.empty(rows)
     gamma0, gamma1, gamma = np.empty(rows), np.empty(rows), np.empty(rows)
     for i in range(rows):  # a row in slice coordinates: alpha u + beta v >= gamma0 - z gamma1
         alpha[i], beta[i], gamma0[i], gamma1[i] = 0.0, 0.0, offsets[i], 0.0
         for j in range(3):
-            alpha[i] += math.sqrt(evals[1]) * normals[i, j] * evecs[j, 1]
-            beta[i] += math.sqrt(evals[2]) * normals[i, j] * evecs[j, 2]
-            gamma0[i] -= normals[i, j] * mean[j]
+            alpha[i] += scale * math.sqrt(evals[1]) * normals[i, j] * evecs[j, 1]
+            beta[i] += scale * math.sqrt(evals[2]) * normals[i, j] * evecs[j, 2]
+            gamma0[i] -= normals[i, j] * centre[j]
             gamma1[i] += normals[i, j] * evecs[j, 0]
-    breaks = np.empty(11)
+    breaks = np.empty(19)
     for k in range(8):
-        breaks[k] = 0.0
+        breaks[k], breaks[11 + k] = 0.0, 0.0
         for j in range(3):
-            breaks[k] += evecs[j, 0] * (corners[k, j] - mean[j])
+            breaks[k] += evecs[j, 0] * (cube[k, j] - centre[j])
+            breaks[11 + k] += evecs[j, 0] * (corners[k, j] - centre[j])  # C(V)'s edges, where the cube moved
     z_lo, z_hi = breaks[:8].min(), breaks[:8].max()
     breaks[8] = 0.0
     breaks[9], breaks[10] = (-np.inf, np.inf) if with_cone else (z_lo, z_hi)
-    _sort_small(breaks, 11)
+    n_breaks = 19 if moved and with_cone else 11
+    _sort_small(breaks, n_breaks)
     xa, ya, xb, yb = np.empty(32), np.empty(32), np.empty(32), np.empty(32)
-    cube_mass, cone_mass = 0.0, 0.0
-    for i in range(10):
+    cube_mass, cone_mass, both_mass = 0.0, 0.0, 0.0
+    for i in range(n_breaks - 1):
         za, zb = breaks[i], breaks[i + 1]
         if not zb > za:
             continue
@@ -186,9 +201,15 @@ def _cube_masses_3d(mean, evals, evecs, sensor, corners, with_cone):
                 cube_mass += weight * _clipped_slice_mass(
                     alpha, beta, gamma, _FIRST_CUBE_ROW, _FIRST_CONE_ROW, xa, ya, xb, yb
                 )
+                if with_cone and moved:
+                    both_mass += weight * _clipped_slice_mass(
+                        alpha, beta, gamma, _FIRST_CUBE_ROW, np.int64(rows), xa, ya, xb, yb
+                    )
             if with_cone:
                 cone_mass += weight * _clipped_slice_mass(alpha, beta, gamma, _FIRST_CONE_ROW, n_cone, xa, ya, xb, yb)
-    return min(cube_mass, 1.0), min(max(cone_mass, cube_mass), 1.0)
+    cube_mass = min(cube_mass, 1.0)
+    both_mass = min(both_mass, cube_mass) if moved else cube_mass  # unmoved, the cube lies in C(V)
+    return cube_mass, min(max(cone_mass, both_mass), 1.0), both_mass
 
 
 @njit(cache=True)
@@ -282,11 +303,19 @@ def _shadow_mass_eq9(ws, b, p):
 
 @njit(cache=True)
 def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, half):
-    """(hits, misses) of one component in one cube, as fractions of its mass."""
+    """(hits, misses) of one component in one cube, as fractions of its mass. An occupied component's
+    sample claims free only what its ray crosses until HIT_STOP_CELLS cubes short of it
+    (gmm_core.scan_trace): its misses are those of its point moved that stop toward the sensor along
+    its ray, taken as the scaling about the sensor that moves a point at the cube's distance plus
+    the stop by exactly the stop (the samples that a stop decides for the cube lie there). The cube
+    that holds the sensor is crossed by every ray: all the mass outside it is its misses (the tracer
+    leaves out the samples within the stop of the sensor, where a range sensor returns nothing)."""
     corners = _cube_corners(cx, cy, cz, half)
     if holds_sensor(sensor, (cx, cy, cz), half):
-        mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(False))[0]
+        mass = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(False), 1.0)[0]
         return (0.0, 1.0) if max_range else (mass, 1.0 - mass)
+    to_cube = math.sqrt((cx - sensor[0]) ** 2 + (cy - sensor[1]) ** 2 + (cz - sensor[2]) ** 2)
+    scale = 1.0 if max_range else to_cube / (to_cube + HIT_STOP_CELLS * 2.0 * half)
     # Isotropic frame, sensor at the origin: q is the sensor seen from the mean, ws the corners.
     q = np.zeros(3)
     centre = np.zeros(3)
@@ -314,7 +343,8 @@ def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, hal
             > math.asin(radius / dist) + math.asin(NEGLIGIBLE_SIGMA / p)
         ):
             return 0.0, 0.0  # the cube's cone passes the component by
-        if all_front and r_far < p - NEGLIGIBLE_SIGMA:
-            return 0.0, _shadow_mass_eq9(ws, b, p)  # well in front: the paper's Eq. 9
-    mass, beyond_entry = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(True))
-    return (0.0, beyond_entry) if max_range else (mass, max(beyond_entry - mass, 0.0))
+        # The moved samples seen from the sensor in their own isotropic frame: q the same, the cube 1 / scale.
+        if all_front and r_far / scale < p - NEGLIGIBLE_SIGMA:
+            return 0.0, _shadow_mass_eq9(ws / scale, b, p)  # well in front: the paper's Eq. 9
+    mass, beyond_entry, inside = _cube_masses_3d(mean, evals, evecs, sensor, corners, np.bool_(True), scale)
+    return (0.0, beyond_entry) if max_range else (mass, max(beyond_entry - inside, 0.0))

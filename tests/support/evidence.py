@@ -6,18 +6,21 @@ import numpy as np
 from gmm_core import Mixture, Pose, ScanModel
 
 
-def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False):
-    """(hit, miss) fractions of one cell, from n rays origin -> sample (slab test per ray)."""
+def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False, stop=0.0):
+    """(hit, miss) fractions of one cell, from n rays origin -> sample (slab test per ray); with
+    `stop` (m), a sample's misses end that far short of it (gmm_core.scan_trace's 3D hits)."""
     x = rng.multivariate_normal(mean, cov, n)
     lo, hi = np.asarray(center) - size / 2, np.asarray(center) + size / 2
     o = np.asarray(origin, dtype=float)
     d = x - o
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    d = d * np.maximum(1.0 - stop / length, 0.0)  # a sample nearer than the stop: no ray of misses
     with np.errstate(divide="ignore", invalid="ignore"):
         ta, tb = (lo - o) / d, (hi - o) / d
     inside_o = (o >= lo) & (o <= hi)
     t_enter = np.where(d != 0, np.minimum(ta, tb), np.where(inside_o, -np.inf, np.inf)).max(axis=1)
     t_exit = np.where(d != 0, np.maximum(ta, tb), np.where(inside_o, np.inf, -np.inf)).min(axis=1)
-    crosses = (t_enter < t_exit) & (t_exit > 0) & (t_enter < 1)  # a length of the ray inside
+    crosses = (t_enter < t_exit) & (t_exit > 0) & (t_enter < 1) & np.any(d != 0, axis=1)  # a length inside
     inside = np.all((x >= lo) & (x <= hi), axis=1)
     if max_range:
         return 0.0, crosses.mean()

@@ -18,7 +18,7 @@ from gmm_core.sampling import (
     scan_rays,
     scan_samples,
 )
-from gmm_core.scan_trace import GridCounts
+from gmm_core.scan_trace import HIT_STOP_CELLS, GridCounts, _trace_hit
 
 
 def random_mixture(rng, dim, k, spread, support):
@@ -49,17 +49,34 @@ def moved_rays(grid, model, pose, seed, samples_per_cell):
     return moved(model.origin[None])[0], moved(ends), weights, is_hit, index, np.repeat(counts, counts)
 
 
+def stopped_short(grid, origin, ends):
+    """Each end moved HIT_STOP_CELLS cells toward the origin, and whether the ray is longer than that
+    (the misses of an occupied sample's ray end there, gmm_core.scan_trace)."""
+    delta = ends - origin
+    length = np.linalg.norm(delta, axis=1)
+    kept = 1.0 - HIT_STOP_CELLS * grid.resolution / length
+    return origin + kept[:, None] * delta, kept > 0.0
+
+
 def reference(grid, model, pose, seed, samples_per_cell):
     """2D: every sample traced whole (trace_rays). 3D: every cell a sample's ray crosses, found by
     brute force, with the weight of the level (module docstring of gmm_core.scan_trace) at which the
-    ray enters it: the first ceil(n / 4^l) samples on t in [2^-(l+1), 2^-l) with weight n / that."""
+    ray enters it: the first ceil(n / 4^l) samples on t in [2^-(l+1), 2^-l) with weight n / that; an
+    occupied sample's ray stopped short of it, and its own cell, where it has the hit, gains no miss."""
     origin, ends, weights, is_hit, index, n = moved_rays(grid, model, pose, seed, samples_per_cell)
     if grid.dim == 2:
         return trace_rays(grid, origin[None], np.zeros(len(ends), int), ends, weights, is_hit, threads=1)
     centres = grid.cell_centers()
     lo_c, hi_c = centres - grid.resolution / 2, centres + grid.resolution / 2
     hits, misses = np.zeros(grid.n_cells), np.zeros(grid.n_cells)
-    for e, w, hit, s, count in zip(ends, weights, is_hit, index, n):
+    short, kept = stopped_short(grid, origin, ends)
+    for e, e_short, has_misses, w, hit, s, count in zip(ends, short, kept, weights, is_hit, index, n):
+        end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
+        if hit:
+            hits[end_cell] += w
+            if not has_misses:
+                continue
+            e = e_short
         delta = e - origin
         with np.errstate(divide="ignore", invalid="ignore"):
             ta, tb = (lo_c - origin) / delta, (hi_c - origin) / delta
@@ -76,9 +93,7 @@ def reference(grid, model, pose, seed, samples_per_cell):
                 break
             level, m = level + 1, inner
         crossed = enters < leaves
-        end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
         if hit:
-            hits[end_cell] += w
             crossed &= ~end_cell
         misses[crossed] += cell_weight[crossed]
     return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
@@ -119,9 +134,31 @@ def test_fused_trace_equals_tracing_every_sample(dim):
 
 
 def whole(grid, model, pose, seed, samples_per_cell):
-    """Every sample's ray traced whole (trace_rays), none thinned."""
+    """Every sample's ray traced whole (trace_rays), none thinned; in 3D an occupied sample's misses
+    stopped short of it, none in its own cell."""
     origin, ends, weights, is_hit, _, _ = moved_rays(grid, model, pose, seed, samples_per_cell)
-    return trace_rays(grid, origin[None], np.zeros(len(ends), int), ends, weights, is_hit, threads=1)
+    hits, misses = trace_rays(grid, origin[None], np.zeros(len(ends), int), ends, weights, is_hit, threads=1)
+    if grid.dim == 2:
+        return hits, misses
+    short, kept = stopped_short(grid, origin, ends)
+    miss_ends = np.where(is_hit[:, None], short, ends)
+    traced = ~is_hit | kept
+    n = int(traced.sum())
+    _, misses = trace_rays(
+        grid, origin[None], np.zeros(n, int), miss_ends[traced], weights[traced], np.zeros(n, bool), threads=1
+    )
+    stop_cell = cell_of(grid, miss_ends)
+    own_cell = is_hit & kept & (stop_cell >= 0) & (stop_cell == cell_of(grid, ends))
+    np.subtract.at(misses.reshape(-1), stop_cell[own_cell], weights[own_cell])
+    return hits, misses
+
+
+def cell_of(grid, points):
+    """The flat cell number of each point on `grid` (as hits.ravel() numbers them), -1 outside."""
+    index = np.floor((points - grid.origin) / grid.resolution).astype(np.int64)
+    inside = np.all((index >= 0) & (index < np.asarray(grid.shape)), axis=1)
+    flat = np.ravel_multi_index(tuple(np.where(inside[:, None], index, 0)[:, ::-1].T), grid.array_shape)
+    return np.where(inside, flat, -1)
 
 
 def test_thinned_misses_keep_their_expectation_and_every_hit():
@@ -143,6 +180,29 @@ def test_thinned_misses_keep_their_expectation_and_every_hit():
     mean, standard_error = differences.mean(axis=0), differences.std(axis=0, ddof=1) / np.sqrt(len(differences))
     assert (standard_error > 0).sum() >= 4  # shells the thinning reaches
     assert np.all(np.abs(mean) <= 5 * standard_error + 1e-9), (mean, standard_error)
+
+
+def test_an_occupied_sample_claims_free_only_the_cells_a_stop_short_of_it():
+    """One sample of one component (n = 1: no thinning) from the corner of a 0.1 m grid: its hit in its
+    own cell, misses up to the cell of the point HIT_STOP_CELLS before it; where that point is in the
+    sample's own cell (a diagonal ray ending in a far corner), the cell gains the hit alone."""
+    dims = np.array([8, 8, 8])
+
+    def trace(q, o=(0.0, 0.0, 0.0)):
+        hits, misses = np.zeros(512), np.zeros(512)
+        cells, lo, hi = np.empty(28, np.uint32), np.zeros(3), dims - 1.0
+        args = (np.array(o), np.array(q), 1.0, 0, 1, np.zeros(3), 10.0, dims, lo, hi, cells, hits, misses)
+        _trace_hit(*args, np.empty(3))
+        return hits.reshape(8, 8, 8), misses.reshape(8, 8, 8)  # [z, y, x]
+
+    hits, misses = trace([0.55, 0.05, 0.05])  # along x, in cell x = 5 of the row y = z = 0
+    stop = int(np.floor(10 * (0.55 - 0.1 * HIT_STOP_CELLS)))  # the cell of the stop point, before the sample's
+    assert hits[0, 0, 5] == 1.0 and hits.sum() == 1.0 and stop < 5
+    assert np.array_equal(np.flatnonzero(misses[0, 0]), np.arange(stop + 1)) and misses.sum() == stop + 1
+    hits, misses = trace([0.599, 0.598, 0.597], (0.013, 0.007, 0.001))  # diagonal: its stop point ~0.06 m back
+    assert hits[5, 5, 5] == 1.0 and misses[5, 5, 5] == 0.0 and misses[4, 4, 4] > 0.0
+    hits, misses = trace([0.05, 0.0, 0.0])  # nearer than the stop: the hit alone
+    assert hits.sum() == 1.0 and misses.sum() == 0.0
 
 
 @pytest.mark.parametrize("dim", [2, 3])
