@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np
-from octomap_compare import aligned_bbox, machine_line, octomap_prob, octomap_tree, timed
+from octomap_compare import aligned_bbox, gmm_map, machine_line, octomap_prob, octomap_tree, timed
 
 from gmm_core.metrics import grid_auroc
 from protocol import encode
@@ -85,17 +85,7 @@ def main() -> None:
     rows = []
     for fraction in args.fractions:
         scans = list(keyframes(read(fraction), settings.keyframe, lambda s: (s.pose, s.stamp)))
-        gmm, t_gmm = timed(
-            replay,
-            scans,
-            resolution=RESOLUTION,
-            bbox=bbox,
-            method="mc",
-            config=config,
-            seed=0,
-            reconstruction=settings.reconstruction,
-            encoding="q",
-        )
+        gmm, t_gmm = timed(gmm_map, scans, RESOLUTION, bbox, config, settings.reconstruction)
         raw = replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config)
         models = fit_scans(scans, config)
         if sum(m.n_components for m in models) != gmm.components:

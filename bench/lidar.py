@@ -56,7 +56,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np
 import octomap
-from octomap_compare import aligned_bbox, insert_scan, machine_line, octomap_prob, octomap_tree
+from octomap_compare import aligned_bbox, gmm_map, insert_scan, machine_line, octomap_prob, octomap_tree
 
 from gmm_core import FitConfig, Pose, fit_scan
 from gmm_core.metrics import called_free, grid_auroc
@@ -150,16 +150,7 @@ def aurocs(name: str, config, settings, fractions, stretch: float) -> list[tuple
     rows = []
     for fraction in fractions:
         scans = read(name, fraction, stretch)
-        gmm = replay(
-            scans,
-            resolution=RESOLUTION,
-            bbox=bbox,
-            method="mc",
-            config=config,
-            seed=0,
-            reconstruction=settings.reconstruction,
-            encoding="q",
-        ).prob
+        gmm = gmm_map(scans, RESOLUTION, bbox, config, settings.reconstruction).prob
         a_gmm, free_gmm = grid_auroc(gmm, *truth), called_free(gmm, occupied, variance)
         del gmm
         a_raw = grid_auroc(replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config).prob, *truth)

@@ -1,5 +1,6 @@
-"""What the benches that set the GMM beside OctoMap share (bench/auroc_balm.py, bench/lidar.py):
-the machine line, the evaluation box, OctoMap's trees and their occupancy on our grid, a timer.
+"""What the benches that set the GMM beside OctoMap share (bench/auroc_balm.py, bench/lidar.py,
+bench/street_truth.py): the machine line, the evaluation box, the GMM's map as they grade it,
+OctoMap's trees and their occupancy on our grid, a timer.
 
 OctoMap through octomap-python (the [bench] extra): `OcTree(resolution).insertPointCloud` of each
 scan's points in the world frame from its sensor origin, read at the grid's cell centres with
@@ -13,8 +14,10 @@ import time
 import numpy as np
 import octomap
 
-from gmm_core import Grid
+from gmm_core import FitConfig, Grid
+from gmm_core.reconstruct import ReconstructionConfig
 from services.datasets import RangeScan
+from services.replay import ReplayMap, replay
 
 
 def machine_line() -> str:
@@ -34,6 +37,27 @@ def observed_centres(grid: Grid, observed: np.ndarray) -> np.ndarray:
     """(n, 3) x, y, z centres of the cells where `observed` (array order [iz, iy, ix]) is True."""
     iz, iy, ix = np.nonzero(observed)
     return grid.origin + (np.stack([ix, iy, iz], axis=1) + 0.5) * grid.resolution
+
+
+def gmm_map(
+    scans: list[RangeScan],
+    resolution: float,
+    bbox: list[float],
+    config: FitConfig,
+    reconstruction: ReconstructionConfig,
+) -> ReplayMap:
+    """The GMM's map of `scans` as a server builds it: `replay` by Monte Carlo (seed 0), every scan
+    model through the `q` codec, with the fit and reconstruction settings given."""
+    return replay(
+        scans,
+        resolution=resolution,
+        bbox=bbox,
+        method="mc",
+        config=config,
+        seed=0,
+        reconstruction=reconstruction,
+        encoding="q",
+    )
 
 
 def insert_scan(tree: octomap.OcTree, scan: RangeScan, maxrange: float) -> None:

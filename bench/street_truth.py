@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from lidar import MAX_RANGE, RESOLUTION, SETS, evaluation_bbox, read
-from octomap_compare import observed_centres, octomap_prob, octomap_tree
+from octomap_compare import gmm_map, observed_centres, octomap_prob, octomap_tree
 
 from gmm_core.metrics import auroc, called_free
 from services.config import load_config
@@ -60,14 +60,7 @@ def main() -> None:
     for fraction in args.fractions:
         scans = every if fraction == 1.0 else read("street", fraction)
         maps = {
-            "GMM": replay(
-                scans,
-                resolution=RESOLUTION,
-                bbox=bbox,
-                config=config,
-                reconstruction=settings.reconstruction,
-                encoding="q",
-            ).prob[observed],
+            "GMM": gmm_map(scans, RESOLUTION, bbox, config, settings.reconstruction).prob[observed],
             "OctoMap": octomap_prob(octomap_tree(scans, RESOLUTION, MAX_RANGE), grid, observed)[observed],
             "raw": replay(scans, resolution=RESOLUTION, bbox=bbox, method="raw", config=config).prob[observed],
         }
