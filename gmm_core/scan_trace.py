@@ -67,10 +67,10 @@ def _at(o, q, t, a):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _trace_thinned(o, q, w, is_hit, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses):
-    """Sample s of a component of n samples, traced o -> q in one segment per level it takes part in
-    (module docstring), from the sample inward; each segment but the innermost leaves out the cell it
-    starts in, which the ray entered on the level inside."""
+def _trace_thinned(o, q, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses):
+    """The misses of sample s of a component of n samples, traced o -> q (every cell it crosses, q's
+    too) in one segment per level it takes part in (module docstring), from q inward; each segment
+    but the innermost leaves out the cell it starts in, which the ray entered on the level inside."""
     b, m = 1.0, n  # the level's outer end and its samples
     while True:
         inner = (m + 3) // 4  # samples on the next level in: ceil(n / 4^(l+1))
@@ -78,7 +78,7 @@ def _trace_thinned(o, q, w, is_hit, s, n, grid_lo, to_cells, dims, lo, hi, cells
         weight = np.rint(w * n / m / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
         _trace_ray(
             _at(o, q, a, 0), _at(o, q, a, 1), _at(o, q, a, 2), _at(o, q, b, 0), _at(o, q, b, 1), _at(o, q, b, 2),
-            weight, is_hit and b == 1.0, a > 0.0, grid_lo, to_cells, dims, lo, hi, 0, cells, hits, misses,
+            weight, False, a > 0.0, grid_lo, to_cells, dims, lo, hi, 0, cells, hits, misses,
         )  # fmt: skip
         if a == 0.0 or s >= inner:
             return
@@ -112,7 +112,7 @@ def _trace_hit(o, q, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, miss
         return
     for a in range(3):
         short[a] = o[a] + kept * (q[a] - o[a])
-    _trace_thinned(o, short, w, False, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
+    _trace_thinned(o, short, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
     if cell >= 0 and _cell_of(short, grid_lo, to_cells, dims) == cell:
         misses[cell] -= weight
 
@@ -165,7 +165,7 @@ def _trace_mixture(
             if d == 3 and is_hit:
                 _trace_hit(o, q, w, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short)
             elif d == 3:
-                _trace_thinned(o, q, w, False, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
+                _trace_thinned(o, q, w, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
             else:
                 _trace_ray(
                     o[0], o[1], o[2], q[0], q[1], q[2], w, is_hit, False, grid_lo, to_cells, dims, lo, hi, 0, cells,
