@@ -39,7 +39,7 @@ def main() -> None:
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0, 0.3])
     args = parser.parse_args()
     settings = load_config()
-    config = settings.fit.for_dimension(3)
+    config, variance = settings.fit.for_dimension(3), settings.reconstruction.variance
 
     SETS["street"] = (args.street, {"fmt": "pcd", "poses": args.street / "poses.txt"})
     every = read("street")
@@ -66,7 +66,6 @@ def main() -> None:
         }
         truths = (raw_occupied, solid)
         against = [" / ".join(f"{auroc(p, cells):.4f}" for p in maps.values()) for cells in truths]
-        variance = settings.reconstruction.variance
         free = [" / ".join(f"{called_free(p, cells, variance):.1%}" for p in maps.values()) for cells in truths]
         print(f"| {fraction:.0%} | {against[0]} | {against[1]} | {free[0]} | {free[1]} |", flush=True)
 
