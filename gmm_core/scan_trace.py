@@ -18,14 +18,15 @@ Thinning further by the distance from the sample (half the samples per doubling 
 2.7x fewer cells of the mine region but lost as much AUROC as fewer samples per cell do, for 1.1x
 (docs/BENCHMARKS.md, twenty-eighth session): the misses far from a sample are not spare.
 
-In 3D a sample's misses stop HIT_STOP_CELLS cells short of it (its hit stays in its own cell). A
-sample's depth along its ray scatters by its component's thickness that way, and the rays to the
+An occupied sample's misses stop HIT_STOP_CELLS cells short of it (its hit stays in its own cell).
+A sample's depth along its ray scatters by its component's thickness that way, and the rays to the
 samples behind a surface crossed the cells of the surface in front of them: a wall seen at a slant,
 or the ground at range, was carved free by its own samples (the synthetic street's walls at
 20-40 m: 15.8 % of their cells called free, where OctoMap called 2.8 %). One cell short, AUROC
 against the raw grid of BALM with 30 / 10 % of its points 0.9860 -> 0.9890 / 0.9579 -> 0.9694, the
 occupied cells it calls free 4.4 -> 2.9 % / 6.2 -> 4.4 %; with every point 0.9967 -> 0.9962
-(docs/BENCHMARKS.md, thirty-fourth session). The free mixture's rays, and 2D's, run to their ends.
+(docs/BENCHMARKS.md, thirty-fourth session); on the Intel lab in 2D every row of the AUROC table
+rose, by 0.0001-0.0099 (thirty-fifth session). The free mixture's rays run to their ends.
 
 A component is drawn only when its rays can reach the grid: every sample of it lies in a box
 known beforehand (the normals are clipped), every ray in the box spanned by that box and the
@@ -46,8 +47,8 @@ from gmm_core.pose import Pose
 from gmm_core.raytrace import _trace_ray, check_cells
 from gmm_core.sampling import BOX_SLACK, WEIGHT_QUANTUM, Z_MAX, MixtureSamples, ScanSamples, sample_normals
 
-# 3D: a sample of the occupied mixture claims free only the cells its ray crosses until this many
-# cells (of the grid traced) short of it (module docstring); 1.5 and 2 lost AUROC with every point.
+# A sample of the occupied mixture claims free only the cells its ray crosses until this many cells
+# (of the grid traced) short of it (module docstring); 1.5 and 2 lost AUROC with every point, in 3D and 2D.
 HIT_STOP_CELLS = 1.0
 
 
@@ -98,10 +99,10 @@ def _cell_of(q, grid_lo, to_cells, dims):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _trace_hit(o, q, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short):
+def _trace_hit(o, q, w, s, n, thinned, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short):
     """Sample s of an occupied component of n samples: its hit in its own cell, its misses traced
-    (thinned) o -> `short`, the point HIT_STOP_CELLS cells before q, whose cell gains no miss where it
-    is q's own."""
+    o -> `short`, the point HIT_STOP_CELLS cells before q, whose cell gains no miss where it is q's
+    own; `thinned` (3D): the misses thinned toward the sensor, else the ray whole."""
     weight = np.rint(w / WEIGHT_QUANTUM) * WEIGHT_QUANTUM  # the outermost level's (_trace_thinned)
     cell = _cell_of(q, grid_lo, to_cells, dims)
     if cell >= 0:
@@ -112,7 +113,13 @@ def _trace_hit(o, q, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, miss
         return
     for a in range(3):
         short[a] = o[a] + kept * (q[a] - o[a])
-    _trace_thinned(o, short, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
+    if thinned:
+        _trace_thinned(o, short, w, s, n, grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
+    else:
+        _trace_ray(
+            o[0], o[1], o[2], short[0], short[1], short[2], w, False, False, grid_lo, to_cells, dims, lo, hi, 0, cells,
+            hits, misses,
+        )  # fmt: skip
     if cell >= 0 and _cell_of(short, grid_lo, to_cells, dims) == cell:
         misses[cell] -= weight
 
@@ -162,13 +169,13 @@ def _trace_mixture(
                 p[a] = means[k, a] + acc
             for a in range(d):
                 q[a] = _moved(R, t, p, a)
-            if d == 3 and is_hit:
-                _trace_hit(o, q, w, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short)
+            if is_hit:
+                _trace_hit(o, q, w, s, counts[k], d == 3, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short)
             elif d == 3:
                 _trace_thinned(o, q, w, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
             else:
                 _trace_ray(
-                    o[0], o[1], o[2], q[0], q[1], q[2], w, is_hit, False, grid_lo, to_cells, dims, lo, hi, 0, cells,
+                    o[0], o[1], o[2], q[0], q[1], q[2], w, False, False, grid_lo, to_cells, dims, lo, hi, 0, cells,
                     hits, misses,
                 )  # fmt: skip
         traced += counts[k]

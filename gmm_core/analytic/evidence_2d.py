@@ -18,6 +18,7 @@ from gmm_core.analytic.components import NEGLIGIBLE_SIGMA, holds_sensor, may_rea
 from gmm_core.analytic.polygon import corner_mass, halfplane_mass, make_ccw
 from gmm_core.analytic.special import SQRT2, bvn_upper, erf_diff
 from gmm_core.grid import Grid
+from gmm_core.scan_trace import HIT_STOP_CELLS
 
 
 @njit(cache=True)
@@ -31,13 +32,16 @@ def eq5_by_sines(p, sin1, sin2, r_prime):
 
 
 @njit(cache=True)
-def _rect_mass_2d(mean, cov, cx, cy, half):
-    """Eq. 10 over a square: the bivariate normal rectangle probability (4 orthants)."""
+def _rect_mass_2d(mean, cov, x_lo, x_hi, y_lo, y_hi):
+    """Eq. 10 over the rectangle [x_lo, x_hi] x [y_lo, y_hi] (none where empty): the bivariate normal
+    rectangle probability (4 orthants)."""
+    if not (x_hi > x_lo and y_hi > y_lo):
+        return 0.0
     sx = math.sqrt(cov[0, 0])
     sy = math.sqrt(cov[1, 1])
     r = min(1.0, max(-1.0, cov[0, 1] / (sx * sy)))
-    x0, x1 = (cx - half - mean[0]) / sx, (cx + half - mean[0]) / sx
-    y0, y1 = (cy - half - mean[1]) / sy, (cy + half - mean[1]) / sy
+    x0, x1 = (x_lo - mean[0]) / sx, (x_hi - mean[0]) / sx
+    y0, y1 = (y_lo - mean[1]) / sy, (y_hi - mean[1]) / sy
     # Reflect so the cell lies on the upper side of each axis: tail masses keep their digits.
     if x0 + x1 < 0.0:
         x0, x1, r = -x1, -x0, -r
@@ -123,9 +127,10 @@ def _beyond_2d(qx, qy, px, py, ccx, ccy, radius):
 
 
 @njit(cache=True)
-def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
-    """(hits, misses) of one component in one square cell, as fractions of its mass."""
-    for i in range(4):  # corners, counter-clockwise, in the isotropic frame
+def _square_in_iso(mean, iso, cx, cy, half, px, py):
+    """The corners of the square of centre (cx, cy) and half side `half` in the component's isotropic
+    frame (counter-clockwise, into px, py), and its centre and circumradius there."""
+    for i in range(4):
         dx = cx + (half if i == 1 or i == 2 else -half) - mean[0]
         dy = cy + (half if i >= 2 else -half) - mean[1]
         px[i] = iso[0, 0] * dx + iso[0, 1] * dy
@@ -136,18 +141,52 @@ def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
     radius = 0.0
     for i in range(4):
         radius = max(radius, math.hypot(px[i] - ccx, py[i] - ccy))
-    mass = 0.0
+    return ccx, ccy, radius
+
+
+@njit(cache=True)
+def _square_mass(mean, cov, cx, cy, half, ccx, ccy, radius):
+    """Eq. 10 over the square (centre ccx, ccy and circumradius in the isotropic frame: _square_in_iso),
+    none where it lies farther than NEGLIGIBLE_SIGMA from the component."""
     if math.hypot(ccx, ccy) - radius < NEGLIGIBLE_SIGMA + 1.0:
-        mass = _rect_mass_2d(mean, cov, cx, cy, half)
+        return _rect_mass_2d(mean, cov, cx - half, cx + half, cy - half, cy + half)
+    return 0.0
+
+
+@njit(cache=True)
+def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
+    """(hits, misses) of one component in one square cell, as fractions of its mass. An occupied
+    component's sample claims free only what its ray crosses until HIT_STOP_CELLS cells short of it
+    (gmm_core.scan_trace), as in 3D (evidence_3d): its misses are those of its point moved that stop
+    toward the sensor, taken as the scaling about the sensor that moves a point at the cell's
+    distance plus the stop by exactly the stop. A moved point's ray crosses the cell where the point
+    lies in the cell or beyond it, that is where the sample lies in the square scaled the other way
+    (farther and larger) or beyond that; a sample in the cell is never its miss (its ray would leave
+    the cell and enter it again), so the misses are the mass of the scaled square and beyond it, less
+    that of its overlap with the cell. The cell that holds the sensor is crossed by every ray: all the
+    mass outside it is its misses."""
     if holds_sensor(sensor, (cx, cy), half):
-        beyond = 1.0 - mass
-    else:
-        qx = iso[0, 0] * (sensor[0] - mean[0]) + iso[0, 1] * (sensor[1] - mean[1])
-        qy = iso[1, 0] * (sensor[0] - mean[0]) + iso[1, 1] * (sensor[1] - mean[1])
-        beyond = _beyond_2d(qx, qy, px, py, ccx, ccy, radius)
+        mass = _rect_mass_2d(mean, cov, cx - half, cx + half, cy - half, cy + half)
+        return (0.0, 1.0) if max_range else (mass, 1.0 - mass)
+    qx = iso[0, 0] * (sensor[0] - mean[0]) + iso[0, 1] * (sensor[1] - mean[1])
+    qy = iso[1, 0] * (sensor[0] - mean[0]) + iso[1, 1] * (sensor[1] - mean[1])
+    ccx, ccy, radius = _square_in_iso(mean, iso, cx, cy, half, px, py)
+    mass = _square_mass(mean, cov, cx, cy, half, ccx, ccy, radius)
     if max_range:
-        return 0.0, beyond + mass
-    return mass, beyond
+        return 0.0, mass + _beyond_2d(qx, qy, px, py, ccx, ccy, radius)
+    grow = 1.0 + HIT_STOP_CELLS * 2.0 * half / math.hypot(cx - sensor[0], cy - sensor[1])
+    fx, fy, far_half = sensor[0] + grow * (cx - sensor[0]), sensor[1] + grow * (cy - sensor[1]), grow * half
+    fcx, fcy, far_radius = _square_in_iso(mean, iso, fx, fy, far_half, px, py)
+    far = _square_mass(mean, cov, fx, fy, far_half, fcx, fcy, far_radius) + _beyond_2d(
+        qx, qy, px, py, fcx, fcy, far_radius
+    )
+    overlap = 0.0  # a part of the cell: none where the cell's own mass is
+    if mass > 0.0:
+        overlap = _rect_mass_2d(
+            mean, cov, max(cx - half, fx - far_half), min(cx + half, fx + far_half), max(cy - half, fy - far_half),
+            min(cy + half, fy + far_half),
+        )  # fmt: skip
+    return mass, max(far - overlap, 0.0)
 
 
 @njit(cache=True, parallel=True)

@@ -8,7 +8,7 @@ from gmm_core import Mixture, Pose, ScanModel
 
 def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False, stop=0.0):
     """(hit, miss) fractions of one cell, from n rays origin -> sample (slab test per ray); with
-    `stop` (m), a sample's misses end that far short of it (gmm_core.scan_trace's 3D hits)."""
+    `stop` (m), a sample's misses end that far short of it (gmm_core.scan_trace's occupied samples)."""
     x = rng.multivariate_normal(mean, cov, n)
     lo, hi = np.asarray(center) - size / 2, np.asarray(center) + size / 2
     o = np.asarray(origin, dtype=float)

@@ -59,17 +59,30 @@ def stopped_short(grid, origin, ends):
 
 
 def reference(grid, model, pose, seed, samples_per_cell):
-    """2D: every sample traced whole (trace_rays). 3D: every cell a sample's ray crosses, found by
-    brute force, with the weight of the level (module docstring of gmm_core.scan_trace) at which the
-    ray enters it: the first ceil(n / 4^l) samples on t in [2^-(l+1), 2^-l) with weight n / that; an
-    occupied sample's ray stopped short of it, and its own cell, where it has the hit, gains no miss."""
+    """2D: every sample's ray traced whole (trace_rays), an occupied sample's stopped short of it, its
+    hit in its own cell (found by brute force), which gains no miss. 3D: every cell a sample's ray
+    crosses, found by brute force, with the weight of the level (module docstring of
+    gmm_core.scan_trace) at which the ray enters it: the first ceil(n / 4^l) samples on t in
+    [2^-(l+1), 2^-l) with weight n / that; an occupied sample's ray stopped short of it likewise."""
     origin, ends, weights, is_hit, index, n = moved_rays(grid, model, pose, seed, samples_per_cell)
-    if grid.dim == 2:
-        return trace_rays(grid, origin[None], np.zeros(len(ends), int), ends, weights, is_hit, threads=1)
     centres = grid.cell_centers()
     lo_c, hi_c = centres - grid.resolution / 2, centres + grid.resolution / 2
-    hits, misses = np.zeros(grid.n_cells), np.zeros(grid.n_cells)
     short, kept = stopped_short(grid, origin, ends)
+    if grid.dim == 2:
+        traced = kept | ~is_hit  # an occupied sample nearer than the stop has no ray of misses
+        ray_ends = np.where(is_hit[:, None], short, ends)[traced]
+        no_hit = np.zeros(len(ray_ends), bool)
+        hits, misses = trace_rays(
+            grid, origin[None], np.zeros(len(ray_ends), int), ray_ends, weights[traced], no_hit, 1
+        )
+        hits, misses = hits.ravel(), misses.ravel()
+        for e, e_short, has_misses, w in zip(ends[is_hit], short[is_hit], kept[is_hit], weights[is_hit]):
+            end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
+            hits[end_cell] += w
+            if has_misses:
+                misses[end_cell & np.all((e_short >= lo_c) & (e_short < hi_c), axis=1)] -= w
+        return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
+    hits, misses = np.zeros(grid.n_cells), np.zeros(grid.n_cells)
     for e, e_short, has_misses, w, hit, s, count in zip(ends, short, kept, weights, is_hit, index, n):
         end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
         if hit:
@@ -191,7 +204,7 @@ def test_an_occupied_sample_claims_free_only_the_cells_a_stop_short_of_it():
     def trace(q, o=(0.0, 0.0, 0.0)):
         hits, misses = np.zeros(512), np.zeros(512)
         cells, lo, hi = np.empty(28, np.uint32), np.zeros(3), dims - 1.0
-        args = (np.array(o), np.array(q), 1.0, 0, 1, np.zeros(3), 10.0, dims, lo, hi, cells, hits, misses)
+        args = (np.array(o), np.array(q), 1.0, 0, 1, True, np.zeros(3), 10.0, dims, lo, hi, cells, hits, misses)
         _trace_hit(*args, np.empty(3))
         return hits.reshape(8, 8, 8), misses.reshape(8, 8, 8)  # [z, y, x]
 

@@ -1,6 +1,7 @@
 """gmm_core.analytic.evidence_2d against references: scipy quadrature of the defining integrals,
 closed forms, and Monte Carlo of the ray-tracer's counting rule (a ray that crosses a cell and ends
-outside it is a miss; a sample inside is a hit, or a miss for a max-range component)."""
+outside it is a miss, its misses stopped HIT_STOP_CELLS cells short of the sample; a sample inside is
+a hit, or a miss for a max-range component)."""
 
 import math
 
@@ -12,6 +13,7 @@ from gmm_core import Grid
 from gmm_core.analytic.cells import component_evidence, scan_evidence
 from gmm_core.analytic.evidence_2d import analytic_map_2d
 from gmm_core.reconstruct import reconstruct
+from gmm_core.scan_trace import HIT_STOP_CELLS
 from support.evidence import monte_carlo, two_scans_2d
 from support.paper import eq5_by_angles, eq5_geometry
 
@@ -26,20 +28,23 @@ def isotropic(cov):
     return (vec / np.sqrt(lam)).T
 
 
-def rect_mass_reference(mean, cov, center, size):
-    """Eq. 10 over a square: integral over x of the conditional probability of y in the cell."""
-    h = size / 2
+def rect_mass_reference(mean, cov, lo, hi):
+    """Eq. 10 over the rectangle [lo, hi]: integral over x of the conditional probability of y in it."""
+    if not np.all(np.asarray(hi) > np.asarray(lo)):
+        return 0.0
     sx, sy = np.sqrt(np.diag(cov))
     r = cov[0, 1] / (sx * sy)
     s = sy * math.sqrt(1 - r * r)
 
     def integrand(x):
         my = mean[1] + r * sy * (x - mean[0]) / sx
-        return stats.norm.pdf(x, mean[0], sx) * (
-            stats.norm.cdf((center[1] + h - my) / s) - stats.norm.cdf((center[1] - h - my) / s)
-        )
+        return stats.norm.pdf(x, mean[0], sx) * (stats.norm.cdf((hi[1] - my) / s) - stats.norm.cdf((lo[1] - my) / s))
 
-    return integrate.quad(integrand, center[0] - h, center[0] + h, epsabs=1e-14, epsrel=1e-12, limit=400)[0]
+    return integrate.quad(integrand, lo[0], hi[0], epsabs=1e-14, epsrel=1e-12, limit=400)[0]
+
+
+def square_mass_reference(mean, cov, center, size):
+    return rect_mass_reference(mean, cov, np.asarray(center) - size / 2, np.asarray(center) + size / 2)
 
 
 def beyond_reference(mean, cov, origin, center, size):
@@ -122,12 +127,27 @@ def test_2d_hits_and_misses_match_numerical_integration(kind):
         mean, cov, origin, center, size = random_case_2d(rng, kind)
         hits, misses = component_evidence(mean, cov, origin, center[None], size)
         hits_free, misses_free = component_evidence(mean, cov, origin, center[None], size, max_range=True)
-        mass = rect_mass_reference(mean, cov, center, size)
+        mass = square_mass_reference(mean, cov, center, size)
         holds_sensor = np.all(np.abs(origin - center) <= size / 2)
         beyond = 1 - mass if holds_sensor else beyond_reference(mean, cov, origin, center, size)
+        if holds_sensor:
+            stopped = beyond
+        else:
+            # The occupied samples' misses, stopped short (evidence_2d.cell_evidence_2d): the square
+            # scaled about the sensor so that its distance grows by the stop, and beyond it, less its
+            # overlap with the cell.
+            grow = 1 + HIT_STOP_CELLS * size / np.linalg.norm(center - origin)
+            far, far_size = origin + grow * (center - origin), grow * size
+            lo = np.maximum(center - size / 2, far - far_size / 2)
+            overlap = rect_mass_reference(mean, cov, lo, np.minimum(center + size / 2, far + far_size / 2))
+            stopped = (
+                square_mass_reference(mean, cov, far, far_size)
+                + beyond_reference(mean, cov, origin, far, far_size)
+                - overlap
+            )
         # Both sides are exact; the tolerance is quad's accuracy on these integrands.
         assert hits[0] == pytest.approx(mass, abs=1e-8)
-        assert misses[0] == pytest.approx(beyond, abs=1e-7)
+        assert misses[0] == pytest.approx(stopped, abs=1e-7)
         assert hits_free[0] == 0.0
         assert misses_free[0] == pytest.approx(beyond + mass, abs=1e-7)
 
@@ -139,7 +159,10 @@ def test_2d_evidence_matches_monte_carlo_for_thin_components(thinnest):
     for kind in (0, 0, 1, 1, 2, 3):
         mean, cov, origin, center, size = random_case_2d(rng, kind, thinnest=thinnest)
         hits, misses = component_evidence(mean, cov, origin, center[None], size)
-        mc_hits, mc_misses = monte_carlo(mean, cov, origin, center, size, n, rng)
+        # The cell that holds the sensor: every sample outside it is a miss, where the tracer leaves out
+        # those within the stop of the sensor (evidence_2d.cell_evidence_2d), as in 3D.
+        stop = 0.0 if kind == 3 else HIT_STOP_CELLS * size
+        mc_hits, mc_misses = monte_carlo(mean, cov, origin, center, size, n, rng, stop=stop)
         assert np.isfinite([hits[0], misses[0]]).all()
         # 5 binomial standard deviations of the Monte-Carlo fractions (plus 1e-4 for tiny ones).
         for value, mc in ((hits[0], mc_hits), (misses[0], mc_misses)):
@@ -163,7 +186,7 @@ def test_cell_holding_the_sensor_is_crossed_by_every_ray():
     assert misses[0] == pytest.approx(1 - hits[0], abs=1e-12)
     rng = np.random.default_rng(5)
     for c, h, m in zip(corner_cells[1:], hits[1:], misses[1:]):
-        mc_h, mc_m = monte_carlo(mean + 1.0, cov, sensor, c, 0.1, 200_000, rng)
+        mc_h, mc_m = monte_carlo(mean + 1.0, cov, sensor, c, 0.1, 200_000, rng, stop=HIT_STOP_CELLS * 0.1)
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=5e-3)
     # A sensor at the mean, cells around it: finite, in [0, 1], and rays reach the cells beyond.
     centers = np.array([[2.3, 0.5], [2.0, 0.9], [1.7, 0.2], [2.0, 0.5]])
@@ -171,7 +194,8 @@ def test_cell_holding_the_sensor_is_crossed_by_every_ray():
     assert np.isfinite(hits).all() and np.isfinite(misses).all()
     assert np.all((hits >= 0) & (misses >= 0) & (hits + misses <= 1 + 1e-12))
     for c, h, m in zip(centers, hits, misses):
-        mc_h, mc_m = monte_carlo(mean, cov, mean, c, 0.1, 200_000, rng)
+        stop = 0.0 if np.all(np.abs(mean - c) <= 0.05) else HIT_STOP_CELLS * 0.1
+        mc_h, mc_m = monte_carlo(mean, cov, mean, c, 0.1, 200_000, rng, stop=stop)
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=5e-3)
 
 
