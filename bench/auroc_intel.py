@@ -1,8 +1,9 @@
 """Intel AUROC table (issue 2): GMM vs raw counting grid, by resolution and beams removed.
 
 Ground truth at each resolution is the raw grid of every beam (no-return beams cut at 10 m);
-cells it never observed are left out. Also: the prior N_p and points per component that the
-defaults use, and the time of the whole replay at 5 cm.
+cells it never observed are left out. Beside each AUROC, the share of the truth's occupied cells
+that the map calls free (Eq. 12), the error a planner must not make. Also: the prior N_p and points
+per component that the defaults use, and the time of the whole replay at 5 cm.
 
     .venv/bin/python bench/auroc_intel.py [--quick]
 """
@@ -18,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gmm_core import FitConfig, Grid
-from gmm_core.metrics import grid_auroc
+from gmm_core.metrics import called_free, grid_auroc
 from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import ReconstructionConfig, count_beams
 from services.datasets import keep_beams, read_scans
@@ -48,9 +49,11 @@ def main() -> None:
         f"date {time.strftime('%Y-%m-%d')}"
     )
     rows = []
+    variance = ReconstructionConfig().variance
     for res in resolutions:
         grid = Grid.from_bbox(lo, hi, res)
         truth = count_beams(grid, [(s.hits, s.no_return, s.pose) for s in scans], MAX_RANGE)
+        occupied = truth[0] > truth[1]
         for frac in tqdm(removed, desc=f"{res} m", leave=False):
             sub = [keep_beams(s, 1.0 - frac, 0) for s in scans] if frac else scans
             t0 = time.perf_counter()
@@ -63,6 +66,8 @@ def main() -> None:
                     frac,
                     grid_auroc(gmm.prob, *truth),
                     grid_auroc(raw.prob, *truth),
+                    called_free(gmm.prob, occupied, variance),
+                    called_free(raw.prob, occupied, variance),
                     wire_bytes(gmm.components, gmm.scans),
                     raw_bytes * (1 - frac),
                     t_gmm,
@@ -70,12 +75,15 @@ def main() -> None:
             )
         del truth
     print(
-        "\n| resolution | beams removed | AUROC GMM | AUROC raw grid | GMM bytes/scan (f32) | raw bytes/scan "
-        "| GMM replay s |"
+        "\n| resolution | beams removed | AUROC GMM | AUROC raw grid | occupied called free, GMM / raw grid "
+        "| GMM bytes/scan (f32) | raw bytes/scan | GMM replay s |"
     )
-    print("|---|---|---|---|---|---|---|")
-    for res, frac, a_gmm, a_raw, b_gmm, b_raw, t in rows:
-        print(f"| {res} m | {frac:.0%} | {a_gmm:.4f} | {a_raw:.4f} | {b_gmm:.0f} | {b_raw:.0f} | {t:.1f} |")
+    print("|---|---|---|---|---|---|---|---|")
+    for res, frac, a_gmm, a_raw, f_gmm, f_raw, b_gmm, b_raw, t in rows:
+        print(
+            f"| {res} m | {frac:.0%} | {a_gmm:.4f} | {a_raw:.4f} | {100 * f_gmm:.2f} / {100 * f_raw:.2f} % "
+            f"| {b_gmm:.0f} | {b_raw:.0f} | {t:.1f} |"
+        )
 
     # The defaults: prior N_p and points per component, at 5 cm with 70 % removed.
     grid = Grid.from_bbox(lo, hi, 0.05)
