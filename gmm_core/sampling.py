@@ -145,6 +145,7 @@ class MixtureSamples:
     offsets: np.ndarray  # (K,) int64: index of each component's first sample
     weights: np.ndarray  # (K,) float64, multiples of WEIGHT_QUANTUM
     key: np.uint64
+    thickness: np.ndarray  # (K,) m: each component's thinnest principal standard deviation (a view)
 
     @property
     def n_samples(self) -> int:
@@ -200,17 +201,22 @@ class MixtureSampler:
     def nbytes(self) -> int:
         return self.means.nbytes + self.chol.nbytes + self.sigmas.nbytes + self.expected_points.nbytes
 
+    @property
+    def thickness(self) -> np.ndarray:
+        """(K,) each component's thinnest principal standard deviation (m): a view of `sigmas`."""
+        return self.sigmas[:, 0]
+
     def samples(self, counts: np.ndarray, key: np.uint64) -> MixtureSamples:
         counts = np.ascontiguousarray(counts, dtype=np.int64)
         weights = np.rint(self.expected_points / np.maximum(counts, 1) / WEIGHT_QUANTUM) * WEIGHT_QUANTUM
-        return MixtureSamples(self.means, self.chol, counts, np.cumsum(counts) - counts, weights, key)
+        return MixtureSamples(self.means, self.chol, counts, np.cumsum(counts) - counts, weights, key, self.thickness)
 
     def at(self, resolution: float, samples_per_cell: float, key: np.uint64) -> MixtureSamples:
         """`samples` of the counts `samples_per_component` gives, in one kernel (a server makes one per
         node, resolution and samples per cell, holding the interpreter: the numpy expressions of
         `_counts` and `samples` cost ten times as much on a 2D scan's few dozen components)."""
         counts, offsets, weights = _plan(self.sigmas, self.expected_points, resolution, samples_per_cell)
-        return MixtureSamples(self.means, self.chol, counts, offsets, weights, key)
+        return MixtureSamples(self.means, self.chol, counts, offsets, weights, key, self.thickness)
 
 
 @njit(cache=True)

@@ -50,6 +50,16 @@ from gmm_core.sampling import BOX_SLACK, WEIGHT_QUANTUM, Z_MAX, MixtureSamples, 
 # A sample of the occupied mixture claims free only the cells its ray crosses until this many cells
 # (of the grid traced) short of it (module docstring); 1.5 and 2 lost AUROC with every point, in 3D and 2D.
 HIT_STOP_CELLS = 1.0
+# ... or this many of its component's thinnest standard deviations, where that is farther: the ray
+# to a sample on the far face of the component's 3-sigma slab stops at its near face.
+HIT_STOP_SIGMAS = 6.0
+
+
+@njit(cache=True, inline="always")
+def hit_stop(cell_size, thickness):
+    """How far short of an occupied sample its misses stop (m), on a grid of cells `cell_size` (m),
+    the sample's component `thickness` (its thinnest principal standard deviation, m) thick."""
+    return max(HIT_STOP_CELLS * cell_size, HIT_STOP_SIGMAS * thickness)
 
 
 @njit(cache=True, inline="always")
@@ -99,16 +109,16 @@ def _cell_of(q, grid_lo, to_cells, dims):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _trace_hit(o, q, w, s, n, thinned, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short):
+def _trace_hit(o, q, w, s, n, thinned, stop, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short):
     """Sample s of an occupied component of n samples: its hit in its own cell, its misses traced
-    o -> `short`, the point HIT_STOP_CELLS cells before q, whose cell gains no miss where it is q's
+    o -> `short`, the point `stop` (m, hit_stop) before q, whose cell gains no miss where it is q's
     own; `thinned` (3D): the misses thinned toward the sensor, else the ray whole."""
     weight = np.rint(w / WEIGHT_QUANTUM) * WEIGHT_QUANTUM  # the outermost level's (_trace_thinned)
     cell = _cell_of(q, grid_lo, to_cells, dims)
     if cell >= 0:
         hits[cell] += weight
     length = np.sqrt((q[0] - o[0]) ** 2 + (q[1] - o[1]) ** 2 + (q[2] - o[2]) ** 2)
-    kept = 1.0 - HIT_STOP_CELLS / (to_cells * length)
+    kept = 1.0 - stop / length
     if not kept > 0.0:  # the sample lies within the stop of the sensor: nothing between is claimed free
         return
     for a in range(3):
@@ -126,8 +136,9 @@ def _trace_hit(o, q, w, s, n, thinned, grid_lo, to_cells, dims, lo, hi, cells, h
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _trace_mixture(
-    means, chol, counts, offsets, weights, key, is_hit, R, t, origin, grid_lo, grid_hi, to_cells, dims, hits, misses
-):
+    means, chol, counts, offsets, weights, thickness, key, is_hit, R, t, origin, grid_lo, grid_hi, to_cells, dims,
+    hits, misses,
+):  # fmt: skip
     """Trace every sample of one mixture (MixtureSamples' arrays), moved by (R, t), from the moved
     `origin`, with weight `weights[k]` (signed) each; grid_lo, grid_hi: the grid's box in 3D form
     (a 2D grid is one cell thick, its rays run at mid-height). Returns the samples traced."""
@@ -159,7 +170,7 @@ def _trace_mixture(
                 reaches = False
         if not reaches:
             continue
-        w = weights[k]
+        w, stop = weights[k], hit_stop(1.0 / to_cells, thickness[k])
         for s in range(counts[k]):
             sample_normals(key, offsets[k] + s, z)
             for a in range(d):  # as sampling._place: the point in the node frame
@@ -170,7 +181,9 @@ def _trace_mixture(
             for a in range(d):
                 q[a] = _moved(R, t, p, a)
             if is_hit:
-                _trace_hit(o, q, w, s, counts[k], d == 3, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short)
+                _trace_hit(
+                    o, q, w, s, counts[k], d == 3, stop, grid_lo, to_cells, dims, lo, hi, cells, hits, misses, short
+                )
             elif d == 3:
                 _trace_thinned(o, q, w, s, counts[k], grid_lo, to_cells, dims, lo, hi, cells, hits, misses)
             else:
@@ -189,6 +202,7 @@ def _trace_blocks(
     counts,
     offsets,
     weights,
+    thickness,
     starts,
     keys,
     is_hit,
@@ -211,8 +225,8 @@ def _trace_blocks(
     for b in range(keys.shape[0]):
         lo, hi, n = starts[b], starts[b + 1], node_of[b]
         traced += _trace_mixture(
-            means[lo:hi], chol[lo:hi], counts[lo:hi], offsets[lo:hi], weights[lo:hi], keys[b], is_hit[b],
-            R[n], t[n], origins[n], grid_lo, grid_hi, to_cells, dims, hits, misses,
+            means[lo:hi], chol[lo:hi], counts[lo:hi], offsets[lo:hi], weights[lo:hi], thickness[lo:hi], keys[b],
+            is_hit[b], R[n], t[n], origins[n], grid_lo, grid_hi, to_cells, dims, hits, misses,
         )  # fmt: skip
     return traced
 
@@ -256,6 +270,7 @@ class GridCounts:
             np.concatenate([m.counts for m in mixtures]),
             np.concatenate([m.offsets for m in mixtures]),
             np.concatenate([m.weights if sign == 1.0 else sign * m.weights for m, _, _, sign in blocks]),
+            np.concatenate([m.thickness for m in mixtures]),
             starts,
             np.array([m.key for m in mixtures], np.uint64),
             np.array([is_hit for _, is_hit, _, _ in blocks]),

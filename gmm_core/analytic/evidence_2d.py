@@ -18,7 +18,7 @@ from gmm_core.analytic.components import NEGLIGIBLE_SIGMA, holds_sensor, may_rea
 from gmm_core.analytic.polygon import corner_mass, halfplane_mass, make_ccw
 from gmm_core.analytic.special import SQRT2, bvn_upper, erf_diff
 from gmm_core.grid import Grid
-from gmm_core.scan_trace import HIT_STOP_CELLS
+from gmm_core.scan_trace import hit_stop
 
 
 @njit(cache=True)
@@ -156,8 +156,9 @@ def _square_mass(mean, cov, cx, cy, half, ccx, ccy, radius):
 @njit(cache=True)
 def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
     """(hits, misses) of one component in one square cell, as fractions of its mass. An occupied
-    component's sample claims free only what its ray crosses until HIT_STOP_CELLS cells short of it
-    (gmm_core.scan_trace), as in 3D (evidence_3d): its misses are those of its point moved that stop
+    component's sample claims free only what its ray crosses until hit_stop short of it
+    (gmm_core.scan_trace: a cell, or six of the component's thinnest standard deviations where that
+    is farther), as in 3D (evidence_3d): its misses are those of its point moved that stop
     toward the sensor, taken as the scaling about the sensor that moves a point at the cell's
     distance plus the stop by exactly the stop. A moved point's ray crosses the cell where the point
     lies in the cell or beyond it, that is where the sample lies in the square scaled the other way
@@ -174,7 +175,10 @@ def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
     mass = _square_mass(mean, cov, cx, cy, half, ccx, ccy, radius)
     if max_range:
         return 0.0, mass + _beyond_2d(qx, qy, px, py, ccx, ccy, radius)
-    grow = 1.0 + HIT_STOP_CELLS * 2.0 * half / math.hypot(cx - sensor[0], cy - sensor[1])
+    # the component's thinnest variance, the smaller eigenvalue of its covariance
+    thinnest = 0.5 * (cov[0, 0] + cov[1, 1]) - math.hypot(0.5 * (cov[0, 0] - cov[1, 1]), cov[0, 1])
+    stop = hit_stop(2.0 * half, math.sqrt(max(thinnest, 0.0)))
+    grow = 1.0 + stop / math.hypot(cx - sensor[0], cy - sensor[1])
     fx, fy, far_half = sensor[0] + grow * (cx - sensor[0]), sensor[1] + grow * (cy - sensor[1]), grow * half
     fcx, fcy, far_radius = _square_in_iso(mean, iso, fx, fy, far_half, px, py)
     far = _square_mass(mean, cov, fx, fy, far_half, fcx, fcy, far_radius) + _beyond_2d(

@@ -4,6 +4,13 @@ Monte-Carlo counting of one cell as the ray tracer counts, and two small 2D scan
 import numpy as np
 
 from gmm_core import Mixture, Pose, ScanModel
+from gmm_core.scan_trace import HIT_STOP_CELLS, HIT_STOP_SIGMAS
+
+
+def hit_stop(cov, size):
+    """How far short of an occupied sample of N(., cov) its misses stop on cells of `size` (m):
+    HIT_STOP_CELLS cells, or HIT_STOP_SIGMAS of the thinnest standard deviation where that is more."""
+    return max(HIT_STOP_CELLS * size, HIT_STOP_SIGMAS * np.sqrt(np.linalg.eigvalsh(cov)[0]))
 
 
 def monte_carlo(mean, cov, origin, center, size, n, rng, max_range=False, stop=0.0):

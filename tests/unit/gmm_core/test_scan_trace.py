@@ -18,7 +18,7 @@ from gmm_core.sampling import (
     scan_rays,
     scan_samples,
 )
-from gmm_core.scan_trace import HIT_STOP_CELLS, GridCounts, _trace_hit
+from gmm_core.scan_trace import HIT_STOP_CELLS, HIT_STOP_SIGMAS, GridCounts, _trace_hit
 
 
 def random_mixture(rng, dim, k, spread, support):
@@ -36,52 +36,43 @@ def random_pose(rng, dim):
 
 def moved_rays(grid, model, pose, seed, samples_per_cell):
     """Every sample drawn and moved as the kernel moves it (R p + t summed in index order): the moved
-    origin, ends, weights, is_hit, and each sample's index in its component and that component's count."""
+    origin, ends, weights, is_hit, each sample's index in its component and that component's count,
+    and how far short of each sample its misses stop (m; an occupied sample's, see stopped_short)."""
     ends, weights, is_hit = scan_rays(model, grid.resolution, seed, samples_per_cell)
     samples = scan_samples(model, grid.resolution, seed, samples_per_cell)
     counts = np.concatenate([samples.occupied.counts, samples.free.counts])
     index = np.concatenate([np.arange(n) for n in counts]).astype(int) if len(counts) else np.zeros(0, int)
+    thinnest = [np.sqrt(np.linalg.eigvalsh(m.covariances)[:, 0]) for m in (model.occupied, model.free)]
+    stop = np.maximum(HIT_STOP_CELLS * grid.resolution, HIT_STOP_SIGMAS * np.repeat(np.concatenate(thinnest), counts))
     R, t = pose.R, pose.t
 
     def moved(p):
         return np.column_stack([sum(R[a, b] * p[:, b] for b in range(len(t))) + t[a] for a in range(len(t))])
 
-    return moved(model.origin[None])[0], moved(ends), weights, is_hit, index, np.repeat(counts, counts)
+    return moved(model.origin[None])[0], moved(ends), weights, is_hit, index, np.repeat(counts, counts), stop
 
 
-def stopped_short(grid, origin, ends):
-    """Each end moved HIT_STOP_CELLS cells toward the origin, and whether the ray is longer than that
-    (the misses of an occupied sample's ray end there, gmm_core.scan_trace)."""
+def stopped_short(origin, ends, stop):
+    """Each end moved `stop` (m) toward the origin, and whether the ray is longer than that (the
+    misses of an occupied sample's ray end there: HIT_STOP_CELLS cells, or HIT_STOP_SIGMAS of its
+    component's thinnest standard deviation where that is farther, gmm_core.scan_trace)."""
     delta = ends - origin
     length = np.linalg.norm(delta, axis=1)
-    kept = 1.0 - HIT_STOP_CELLS * grid.resolution / length
+    kept = 1.0 - stop / length
     return origin + kept[:, None] * delta, kept > 0.0
 
 
 def reference(grid, model, pose, seed, samples_per_cell):
-    """2D: every sample's ray traced whole (trace_rays), an occupied sample's stopped short of it, its
-    hit in its own cell (found by brute force), which gains no miss. 3D: every cell a sample's ray
-    crosses, found by brute force, with the weight of the level (module docstring of
-    gmm_core.scan_trace) at which the ray enters it: the first ceil(n / 4^l) samples on t in
-    [2^-(l+1), 2^-l) with weight n / that; an occupied sample's ray stopped short of it likewise."""
-    origin, ends, weights, is_hit, index, n = moved_rays(grid, model, pose, seed, samples_per_cell)
+    """2D: `whole` (2D rays are not thinned). 3D: every cell a sample's ray crosses, found by brute
+    force, with the weight of the level (module docstring of gmm_core.scan_trace) at which the ray
+    enters it: the first ceil(n / 4^l) samples on t in [2^-(l+1), 2^-l) with weight n / that; an
+    occupied sample's ray stopped short of it, and its own cell, where it has the hit, gains no miss."""
+    if grid.dim == 2:
+        return whole(grid, model, pose, seed, samples_per_cell)
+    origin, ends, weights, is_hit, index, n, stop = moved_rays(grid, model, pose, seed, samples_per_cell)
     centres = grid.cell_centers()
     lo_c, hi_c = centres - grid.resolution / 2, centres + grid.resolution / 2
-    short, kept = stopped_short(grid, origin, ends)
-    if grid.dim == 2:
-        traced = kept | ~is_hit  # an occupied sample nearer than the stop has no ray of misses
-        ray_ends = np.where(is_hit[:, None], short, ends)[traced]
-        no_hit = np.zeros(len(ray_ends), bool)
-        hits, misses = trace_rays(
-            grid, origin[None], np.zeros(len(ray_ends), int), ray_ends, weights[traced], no_hit, 1
-        )
-        hits, misses = hits.ravel(), misses.ravel()
-        for e, e_short, has_misses, w in zip(ends[is_hit], short[is_hit], kept[is_hit], weights[is_hit]):
-            end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
-            hits[end_cell] += w
-            if has_misses:
-                misses[end_cell & np.all((e_short >= lo_c) & (e_short < hi_c), axis=1)] -= w
-        return hits.reshape(grid.array_shape), misses.reshape(grid.array_shape)
+    short, kept = stopped_short(origin, ends, stop)
     hits, misses = np.zeros(grid.n_cells), np.zeros(grid.n_cells)
     for e, e_short, has_misses, w, hit, s, count in zip(ends, short, kept, weights, is_hit, index, n):
         end_cell = np.all((e >= lo_c) & (e < hi_c), axis=1)
@@ -147,13 +138,11 @@ def test_fused_trace_equals_tracing_every_sample(dim):
 
 
 def whole(grid, model, pose, seed, samples_per_cell):
-    """Every sample's ray traced whole (trace_rays), none thinned; in 3D an occupied sample's misses
+    """Every sample's ray traced whole (trace_rays), none thinned; an occupied sample's misses
     stopped short of it, none in its own cell."""
-    origin, ends, weights, is_hit, _, _ = moved_rays(grid, model, pose, seed, samples_per_cell)
+    origin, ends, weights, is_hit, _, _, stop = moved_rays(grid, model, pose, seed, samples_per_cell)
     hits, misses = trace_rays(grid, origin[None], np.zeros(len(ends), int), ends, weights, is_hit, threads=1)
-    if grid.dim == 2:
-        return hits, misses
-    short, kept = stopped_short(grid, origin, ends)
+    short, kept = stopped_short(origin, ends, stop)
     miss_ends = np.where(is_hit[:, None], short, ends)
     traced = ~is_hit | kept
     n = int(traced.sum())
@@ -204,8 +193,8 @@ def test_an_occupied_sample_claims_free_only_the_cells_a_stop_short_of_it():
     def trace(q, o=(0.0, 0.0, 0.0)):
         hits, misses = np.zeros(512), np.zeros(512)
         cells, lo, hi = np.empty(28, np.uint32), np.zeros(3), dims - 1.0
-        args = (np.array(o), np.array(q), 1.0, 0, 1, True, np.zeros(3), 10.0, dims, lo, hi, cells, hits, misses)
-        _trace_hit(*args, np.empty(3))
+        args = (np.array(o), np.array(q), 1.0, 0, 1, True, 0.1 * HIT_STOP_CELLS, np.zeros(3), 10.0, dims, lo, hi)
+        _trace_hit(*args, cells, hits, misses, np.empty(3))
         return hits.reshape(8, 8, 8), misses.reshape(8, 8, 8)  # [z, y, x]
 
     hits, misses = trace([0.55, 0.05, 0.05])  # along x, in cell x = 5 of the row y = z = 0

@@ -1,6 +1,6 @@
 """gmm_core.analytic.evidence_2d against references: scipy quadrature of the defining integrals,
 closed forms, and Monte Carlo of the ray-tracer's counting rule (a ray that crosses a cell and ends
-outside it is a miss, its misses stopped HIT_STOP_CELLS cells short of the sample; a sample inside is
+outside it is a miss, its misses stopped short of the sample (hit_stop); a sample inside is
 a hit, or a miss for a max-range component)."""
 
 import math
@@ -13,8 +13,7 @@ from gmm_core import Grid
 from gmm_core.analytic.cells import component_evidence, scan_evidence
 from gmm_core.analytic.evidence_2d import analytic_map_2d
 from gmm_core.reconstruct import reconstruct
-from gmm_core.scan_trace import HIT_STOP_CELLS
-from support.evidence import monte_carlo, two_scans_2d
+from support.evidence import hit_stop, monte_carlo, two_scans_2d
 from support.paper import eq5_by_angles, eq5_geometry
 
 
@@ -136,7 +135,7 @@ def test_2d_hits_and_misses_match_numerical_integration(kind):
             # The occupied samples' misses, stopped short (evidence_2d.cell_evidence_2d): the square
             # scaled about the sensor so that its distance grows by the stop, and beyond it, less its
             # overlap with the cell.
-            grow = 1 + HIT_STOP_CELLS * size / np.linalg.norm(center - origin)
+            grow = 1 + hit_stop(cov, size) / np.linalg.norm(center - origin)
             far, far_size = origin + grow * (center - origin), grow * size
             lo = np.maximum(center - size / 2, far - far_size / 2)
             overlap = rect_mass_reference(mean, cov, lo, np.minimum(center + size / 2, far + far_size / 2))
@@ -161,7 +160,7 @@ def test_2d_evidence_matches_monte_carlo_for_thin_components(thinnest):
         hits, misses = component_evidence(mean, cov, origin, center[None], size)
         # The cell that holds the sensor: every sample outside it is a miss, where the tracer leaves out
         # those within the stop of the sensor (evidence_2d.cell_evidence_2d), as in 3D.
-        stop = 0.0 if kind == 3 else HIT_STOP_CELLS * size
+        stop = 0.0 if kind == 3 else hit_stop(cov, size)
         mc_hits, mc_misses = monte_carlo(mean, cov, origin, center, size, n, rng, stop=stop)
         assert np.isfinite([hits[0], misses[0]]).all()
         # 5 binomial standard deviations of the Monte-Carlo fractions (plus 1e-4 for tiny ones).
@@ -186,7 +185,7 @@ def test_cell_holding_the_sensor_is_crossed_by_every_ray():
     assert misses[0] == pytest.approx(1 - hits[0], abs=1e-12)
     rng = np.random.default_rng(5)
     for c, h, m in zip(corner_cells[1:], hits[1:], misses[1:]):
-        mc_h, mc_m = monte_carlo(mean + 1.0, cov, sensor, c, 0.1, 200_000, rng, stop=HIT_STOP_CELLS * 0.1)
+        mc_h, mc_m = monte_carlo(mean + 1.0, cov, sensor, c, 0.1, 200_000, rng, stop=hit_stop(cov, 0.1))
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=5e-3)
     # A sensor at the mean, cells around it: finite, in [0, 1], and rays reach the cells beyond.
     centers = np.array([[2.3, 0.5], [2.0, 0.9], [1.7, 0.2], [2.0, 0.5]])
@@ -194,7 +193,7 @@ def test_cell_holding_the_sensor_is_crossed_by_every_ray():
     assert np.isfinite(hits).all() and np.isfinite(misses).all()
     assert np.all((hits >= 0) & (misses >= 0) & (hits + misses <= 1 + 1e-12))
     for c, h, m in zip(centers, hits, misses):
-        stop = 0.0 if np.all(np.abs(mean - c) <= 0.05) else HIT_STOP_CELLS * 0.1
+        stop = 0.0 if np.all(np.abs(mean - c) <= 0.05) else hit_stop(cov, 0.1)
         mc_h, mc_m = monte_carlo(mean, cov, mean, c, 0.1, 200_000, rng, stop=stop)
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=5e-3)
 

@@ -1,6 +1,6 @@
 """gmm_core.analytic.evidence_3d against closed forms, scipy quadrature (Eq. 8) and Monte Carlo of the
 ray-tracer's counting rule (a ray that crosses a cube and ends outside it is a miss, its misses
-stopped HIT_STOP_CELLS cubes short of the sample; a sample inside is a hit, or a miss for a
+stopped short of the sample (hit_stop); a sample inside is a hit, or a miss for a
 max-range component)."""
 
 import math
@@ -11,8 +11,7 @@ from scipy import integrate, special, stats
 
 from gmm_core.analytic.cells import component_evidence
 from gmm_core.analytic.evidence_3d import edge_piece_eq8
-from gmm_core.scan_trace import HIT_STOP_CELLS
-from support.evidence import monte_carlo
+from support.evidence import hit_stop, monte_carlo
 
 
 def random_rotation_3d(rng):
@@ -92,7 +91,7 @@ def test_3d_hits_and_misses_match_monte_carlo(kind):
         # The cube that holds the sensor is crossed by every ray: the analytic evidence counts every
         # sample outside it, where the tracer leaves out those within the stop of the sensor, which a
         # range sensor does not return (evidence_3d.cell_evidence_3d).
-        stop = 0.0 if kind == 3 else HIT_STOP_CELLS * size
+        stop = 0.0 if kind == 3 else hit_stop(cov, size)
         mc_hits, mc_misses = monte_carlo(mean, cov, origin, center, size, n, rng, stop=stop)
         _, mc_free = monte_carlo(mean, cov, origin, center, size, n, rng, max_range=True)
         assert np.isfinite([hits[0], misses[0], misses_free[0]]).all()
@@ -103,16 +102,23 @@ def test_3d_hits_and_misses_match_monte_carlo(kind):
             assert value == pytest.approx(mc, abs=5 * math.sqrt(mc * (1 - mc) / n) + 1e-4 + slack)
 
 
-def test_3d_sensor_on_a_corner_shared_by_eight_cubes():
+@pytest.mark.parametrize(
+    "mean, thinnest",
+    [([1.3, 1.1, 0.9], 0.015), ([1.9, 1.3, 0.7], 0.05)],
+    ids=["near, stopped a cube short", "at 1 m, stopped 6 sigmas short"],
+)
+def test_3d_sensor_on_a_corner_shared_by_eight_cubes(mean, thinnest):
+    # A component whose stop reaches back to the sensor's own cubes is where the analytic scaling
+    # errs (evidence_3d.cell_evidence_3d): the first at 0.33 m with a 6-sigma stop of 0.3 m, 0.054.
     rng = np.random.default_rng(8)
-    mean, cov = np.array([1.3, 1.1, 0.9]), np.diag([0.05, 0.2, 0.1]) ** 2
+    mean, cov = np.array(mean), np.diag([thinnest, 0.2, 0.1]) ** 2
     sensor = np.array([1.0, 1.0, 1.0])
     offsets = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)]) - 0.5
     centers = sensor + 0.1 * offsets  # with round-off, as a grid computes them
     hits, misses = component_evidence(mean, cov, sensor, centers, 0.1)
     assert misses[7] == pytest.approx(1 - hits[7], abs=1e-12)  # the upper cube holds the sensor
     for c, h, m in zip(centers[:7], hits[:7], misses[:7]):
-        mc_h, mc_m = monte_carlo(mean, cov, sensor, c, 0.1, 200_000, rng, stop=HIT_STOP_CELLS * 0.1)
+        mc_h, mc_m = monte_carlo(mean, cov, sensor, c, 0.1, 200_000, rng, stop=hit_stop(cov, 0.1))
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=5e-3)
 
 
@@ -126,5 +132,5 @@ def test_3d_exact_slices_agree_with_monte_carlo_closely_near_the_component():
     centers = mean + np.array([[0.0, 0, 0], [0.03, 0.05, -0.02], [-0.06, 0.1, 0.1]])
     hits, misses = component_evidence(mean, cov, origin, centers, 0.1)
     for c, h, m in zip(centers, hits, misses):
-        mc_h, mc_m = monte_carlo(mean, cov, origin, c, 0.1, n, rng, stop=HIT_STOP_CELLS * 0.1)
+        mc_h, mc_m = monte_carlo(mean, cov, origin, c, 0.1, n, rng, stop=hit_stop(cov, 0.1))
         assert (h, m) == pytest.approx((mc_h, mc_m), abs=2e-3)  # > 4 standard deviations at 1e6
