@@ -157,7 +157,7 @@ def _square_mass(mean, cov, cx, cy, half, ccx, ccy, radius):
 def cell_evidence_2d(mean, cov, iso, sensor, max_range, cx, cy, half, px, py):
     """(hits, misses) of one component in one square cell, as fractions of its mass. An occupied
     component's sample claims free only what its ray crosses until hit_stop short of it
-    (gmm_core.scan_trace: a cell, or six of the component's thinnest standard deviations where that
+    (gmm_core.scan_trace: a cell, or three of the component's thinnest standard deviations where that
     is farther), as in 3D (evidence_3d): its misses are those of its point moved that stop
     toward the sensor, taken as the scaling about the sensor that moves a point at the cell's
     distance plus the stop by exactly the stop. A moved point's ray crosses the cell where the point

@@ -305,11 +305,11 @@ def _shadow_mass_eq9(ws, b, p):
 def cell_evidence_3d(mean, evals, evecs, iso, sensor, max_range, cx, cy, cz, half):
     """(hits, misses) of one component in one cube, as fractions of its mass. An occupied component's
     sample claims free only what its ray crosses until hit_stop short of it (gmm_core.scan_trace: a
-    cube, or six of the component's thinnest standard deviations where that is farther): its misses
+    cube, or three of the component's thinnest standard deviations where that is farther): its misses
     are those of its point moved that stop toward the sensor along its ray, taken as the scaling
     about the sensor that moves a point at the cube's distance plus the stop by exactly the stop
     (the samples that a stop decides for the cube lie there; it errs where a component lies within
-    about its stop of the sensor, nearer than a range sensor returns: 0.054 of a component's mass in
+    about its stop of the sensor, nearer than a range sensor returns: 0.090 of a component's mass in
     a cube at the sensor, the component 0.33 m away with a 0.3 m stop). The cube
     that holds the sensor is crossed by every ray: all the mass outside it is its misses (the tracer
     leaves out the samples within the stop of the sensor, where a range sensor returns nothing)."""
