@@ -1,8 +1,9 @@
 """Analytic evidence and occupancy at given cells (squares in 2D, cubes in 3D), without a grid:
 one component (component_evidence), scan models with poses (scan_evidence, occupancy_at_cells).
 Every component is tested against every cell, after the cone culling. An occupied component's
-misses stop a cell short of each sample, as the Monte-Carlo tracer's do (gmm_core.scan_trace,
-evidence_2d, evidence_3d): the two methods of a point query estimate the same counts."""
+misses stop short of each sample (a cell, or three of its thinnest standard deviations), as the
+Monte-Carlo tracer's do (gmm_core.scan_trace.hit_stop, evidence_2d, evidence_3d): the two methods of a
+point query estimate the same counts."""
 
 from __future__ import annotations
 
