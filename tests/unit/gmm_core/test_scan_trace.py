@@ -18,7 +18,8 @@ from gmm_core.sampling import (
     scan_rays,
     scan_samples,
 )
-from gmm_core.scan_trace import HIT_STOP_CELLS, HIT_STOP_SIGMAS, GridCounts, _trace_hit
+from gmm_core.scan_trace import HIT_STOP_CELLS, GridCounts, _trace_hit
+from support.evidence import hit_stop
 
 
 def random_mixture(rng, dim, k, spread, support):
@@ -42,8 +43,8 @@ def moved_rays(grid, model, pose, seed, samples_per_cell):
     samples = scan_samples(model, grid.resolution, seed, samples_per_cell)
     counts = np.concatenate([samples.occupied.counts, samples.free.counts])
     index = np.concatenate([np.arange(n) for n in counts]).astype(int) if len(counts) else np.zeros(0, int)
-    thinnest = [np.sqrt(np.linalg.eigvalsh(m.covariances)[:, 0]) for m in (model.occupied, model.free)]
-    stop = np.maximum(HIT_STOP_CELLS * grid.resolution, HIT_STOP_SIGMAS * np.repeat(np.concatenate(thinnest), counts))
+    stops = [hit_stop(c, grid.resolution) for m in (model.occupied, model.free) for c in m.covariances]
+    stop = np.repeat(np.array(stops, dtype=float), counts)
     R, t = pose.R, pose.t
 
     def moved(p):
