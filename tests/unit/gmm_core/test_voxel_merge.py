@@ -22,7 +22,8 @@ def voxel_coordinates(keys):
 
 def test_voxel_edges_are_the_neighbouring_voxels():
     # Near voxels (0.5 m) within 4 m of the origin, far ones (1 m) beyond: neighbours among each
-    # size are the 18 around a voxel (a face or an edge in common); a near voxel within 2 sqrt(3)
+    # size are the 18 around a voxel (a face or an edge in common), two with an edge in common only
+    # where no voxel has a face in common with both; a near voxel within 2 sqrt(3)
     # voxels of the near range also touches the far voxels that hold one of its 26 neighbours' cells;
     # a voxel without any of these, its nearest within two voxels.
     rng = np.random.default_rng(3)
@@ -33,12 +34,16 @@ def test_voxel_edges_are_the_neighbouring_voxels():
     found = {tuple(sorted(pair)) for pair in zip(eu.tolist(), ev.tolist())}
     assert len(found) == len(eu)  # each pair once
     coords, far = voxel_coordinates(keys)
+    occupied = {(tuple(c), f) for c, f in zip(coords.tolist(), far.tolist())}
     expected = set()
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
             if far[i] == far[j]:
-                step = np.abs(coords[i] - coords[j])
-                if step.max() == 1 and step.sum() < 3:  # a face or an edge in common
+                step = coords[j] - coords[i]
+                # a voxel sharing a face with both: i moved along one of the step's two axes
+                between = [coords[i] + np.where(np.arange(3) == a, step, 0) for a in np.flatnonzero(step)]
+                face_path = step.dot(step) == 2 and any((tuple(b.tolist()), far[i]) in occupied for b in between)
+                if np.abs(step).max() == 1 and np.abs(step).sum() < 3 and not face_path:
                     expected.add((i, j))
                 continue
             n, f = (i, j) if far[j] else (j, i)
@@ -61,6 +66,18 @@ def test_voxel_edges_are_the_neighbouring_voxels():
             expected.add((min(i, offsets[0][-1]), max(i, offsets[0][-1])))
             alone += 1
     assert found == expected and far.any() and (~far).any() and alone > 10
+
+
+def test_an_edge_neighbour_is_joined_only_where_no_face_path_is():
+    # Voxels (0, 0, 0) and (1, 1, 0) share an edge: joined alone, not once (1, 0, 0) is there,
+    # whose faces join them both.
+    size = 1.0
+    corner = np.array([[0.5, 0.5, 0.5], [1.5, 1.5, 0.5]])
+    _, keys = _voxel_statistics(corner, size, np.zeros(3), np.inf)
+    assert len(_voxel_edges(keys, size, np.inf)[0]) == 1
+    _, keys = _voxel_statistics(np.vstack([corner, [1.5, 0.5, 0.5]]), size, np.zeros(3), np.inf)
+    eu, ev = _voxel_edges(keys, size, np.inf)
+    assert sorted(map(sorted, zip(eu.tolist(), ev.tolist()))) == [[0, 2], [1, 2]]
 
 
 def test_pieces_are_scipys_connected_components():
