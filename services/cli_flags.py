@@ -159,5 +159,11 @@ def ros2_flags(p: argparse.ArgumentParser) -> None:
         help="ROS 2 key layout: rmw_zenoh (Jazzy and later) or bridge (zenoh-bridge-ros2dds)",
     )
     setting(p, "--ros-domain", "ros2.domain", type=int, metavar="ID", help="ROS_DOMAIN_ID")
-    setting(p, "--ros-namespace", "ros2.namespace", metavar="NS", help="ROS namespace of relative topic names")
+    setting(
+        p,
+        "--ros-namespace",
+        "ros2.namespace",
+        metavar="NS",
+        help="ROS namespace of relative topic names; with --ros-mapping bridge the bridge's, before every topic",
+    )
     setting(p, "--ros-distro", "ros2.distro", choices=["iron", "jazzy", "kilted", "lyrical"], help="type hashes of")

@@ -29,7 +29,9 @@ def check_topic(field: str, name: str) -> str:
 class Ros2Config:
     mapping: str = "rmw_zenoh"  # key layout, one of MAPPINGS
     domain: int = 0  # ROS_DOMAIN_ID, the first chunk of every rmw_zenoh key
-    namespace: str = ""  # ROS namespace of relative topic names (and of gmmap's nodes); '' for none
+    # ROS namespace of relative topic names (and of gmmap's nodes), '' for none; in the bridge layout the
+    # bridge's, before every name, absolute ones too (names.py)
+    namespace: str = ""
     distro: str = "jazzy"  # whose RIHS01 type hashes gmmap publishes with, one of DISTROS
     # agent, `--source ros2` (its scan topic is agent.scan_topic)
     odom_topic: str | None = None  # nav_msgs/Odometry of the robot body; None: poses from /tf and /tf_static

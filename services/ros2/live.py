@@ -58,7 +58,6 @@ from .names import (
     VOLATILE,
     RosNode,
     TopicKeys,
-    full_name,
     node_name,
     qos_chunk,
     session_id,
@@ -119,10 +118,7 @@ class LiveSource:
             topics["odom"] = (ros.odom_topic, POSE_TYPES)
         if ros.path_topic is not None:
             topics["path"] = (ros.path_topic, (PATH,))
-        self.topics = {
-            role: (TopicKeys(ros.mapping, ros.domain, full_name(topic, ros.namespace)), types)
-            for role, (topic, types) in topics.items()
-        }
+        self.topics = {role: (TopicKeys.of(topic, ros), types) for role, (topic, types) in topics.items()}
         self._graph = RosNode(ros.domain, session_id(session.zid()), node_name("gmmap_agent", robot), ros.namespace)
         self._tokens = []
         self._entity = 0

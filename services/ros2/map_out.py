@@ -41,7 +41,6 @@ from .names import (
     VOLATILE,
     RosNode,
     TopicKeys,
-    full_name,
     node_name,
     qos_chunk,
     session_id,
@@ -113,13 +112,14 @@ class RosMapPublisher:
     def __init__(self, session: zenoh.Session, fleet_map: FleetMap, ros: Ros2Config, fleet: str):
         self.session, self.fleet_map, self.ros = session, fleet_map, ros
         self.store = typestore(ros.distro)
-        self.topic = full_name(ros.map_topic, ros.namespace)
+        keys = TopicKeys.of(ros.map_topic, ros)
+        self.topic = keys.name
         self._graph = RosNode(ros.domain, session_id(session.zid()), node_name("gmmap_server", fleet), ros.namespace)
         self._tokens: list = []
         self._entities = 0
         self._sequence = 0
         self._trajectories: dict[str, tuple] = {}  # robot -> (publisher, gid, published signature)
-        key = TopicKeys(ros.mapping, ros.domain, self.topic).publication(OCCUPANCY_GRID, ros.distro)
+        key = keys.publication(OCCUPANCY_GRID, ros.distro)
         self._grid_gid = self._announce(self.topic, OCCUPANCY_GRID, GRID_QOS)
         self._grid_publisher = zenoh.ext.declare_advanced_publisher(
             session, key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True
@@ -193,9 +193,9 @@ class RosMapPublisher:
         for row in self.fleet_map.robots():
             robot, signature = row["robot"], (row["nodes"], row["pose_revision"])
             if robot not in self._trajectories:
-                topic = full_name(f"/{robot.replace('-', '_')}/trajectory", self.ros.namespace)
-                key = TopicKeys(self.ros.mapping, self.ros.domain, topic).publication(PATH, self.ros.distro)
-                gid = self._announce(topic, PATH, PATH_QOS)
+                keys = TopicKeys.of(f"/{robot.replace('-', '_')}/trajectory", self.ros)
+                key = keys.publication(PATH, self.ros.distro)
+                gid = self._announce(keys.name, PATH, PATH_QOS)
                 self._trajectories[robot] = (self.session.declare_publisher(key), gid, None)
             publisher, gid, sent = self._trajectories[robot]
             if sent == signature:

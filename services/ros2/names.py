@@ -5,7 +5,9 @@ liveliness tokens of rmw_zenoh's graph (as its docs/design.md specifies them, RO
   e.g. `0/scan/sensor_msgs::msg::dds_::LaserScan_/RIHS01_64c1...`; subscribers put `*` for the hash,
   so a publisher of another distribution's hash still arrives (the type name must match).
 - `bridge` (zenoh-bridge-ros2dds): the topic name without its leading slash, under the bridge's
-  ROS namespace (`bot1/scan`); the key names no type.
+  namespace (`bot1/scan`); the key names no type. The bridge puts its namespace before every name it
+  routes, absolute or relative (its ros2_name_to_key_expr): the DDS robot behind it has its topics at
+  its root, so `/scan` and `scan` are both `bot1/scan`.
 
 Liveliness tokens, one per entity, live in the hermetic `@ros2_lv` space:
 `@ros2_lv/<domain>/<session id>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node name>`
@@ -18,7 +20,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-from .config import check_topic
+from .config import Ros2Config, check_topic
 
 ADMIN_SPACE = "@ros2_lv"
 HASH_WILDCARD = "*"
@@ -74,11 +76,20 @@ class TopicKeys:
 
     mapping: str  # "rmw_zenoh" or "bridge"
     domain: int
-    name: str  # fully qualified, "/bot1/scan"
+    name: str  # fully qualified, "/bot1/scan"; a bridge's topic as its DDS side names it
+    prefix: str = ""  # before the name in every key: a bridge's namespace ("bot1"); '' for rmw_zenoh
+
+    @classmethod
+    def of(cls, topic: str, ros: Ros2Config) -> TopicKeys:
+        """The keys of `topic` as `ros` reaches it: rmw_zenoh puts a relative name under the namespace;
+        a bridge puts its namespace before every name, the DDS side's names being at its root."""
+        if ros.mapping == "bridge":
+            return cls(ros.mapping, ros.domain, full_name(topic), ros.namespace.strip("/"))
+        return cls(ros.mapping, ros.domain, full_name(topic, ros.namespace))
 
     @property
     def _path(self) -> str:
-        return self.name.strip("/")
+        return "/".join(p for p in (self.prefix, self.name.strip("/")) if p)
 
     def publication(self, msgtype: str, distro: str) -> str:
         """Where a publisher of `msgtype` puts its samples."""

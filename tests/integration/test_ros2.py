@@ -114,12 +114,15 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
     procs.ready(procs.start("router", "router", "--listen", router), "gmmap router ready")
     ros_map = ["--ros-map", "/map", "--ros-map-period", "0.5", "--ros-mapping", mapping]
     procs.server("server", data, None, hport, "--zenoh-connect", router, *ros_map)
+    # a bridge started with namespace bot1 puts it before every key of the DDS robot's topics, absolute or not
+    namespace = "bot1" if mapping == "bridge" else ""
     ros_args = ["--scan-topic", "/scan", "--odom-topic", "/odom", "--path-topic", "/slam/path"]
+    ros_args += ["--ros-namespace", namespace]
     # the robot is up first: its /tf_static was published before the agent came (transient local)
     robot_config = zenoh_config("client", connect=[router])
     robot_config.insert_json5("timestamping/enabled", "true")  # for the publication cache
     session = zenoh.open(robot_config)
-    robot = RosRobot(session, mapping)
+    robot = RosRobot(session, mapping, namespace)
     if mapping == "rmw_zenoh":
         robot.latch(*intel.static[:2], intel.static[3])
     agent = procs.start(

@@ -35,17 +35,20 @@ def rmw_zenoh_key(topic: str, msgtype: str, domain: int = 0) -> str:
 
 
 class RosRobot:
-    """Publishers of one robot's topics on a Zenoh session, in `mapping` 'rmw_zenoh' or 'bridge'."""
+    """Publishers of one robot's topics on a Zenoh session, in `mapping` 'rmw_zenoh' or 'bridge'; a
+    bridge started with a `namespace` puts it before every key, absolute names' too."""
 
-    def __init__(self, session: zenoh.Session, mapping: str):
-        self.session, self.mapping = session, mapping
+    def __init__(self, session: zenoh.Session, mapping: str, namespace: str = ""):
+        self.session, self.mapping, self.namespace = session, mapping, namespace
         self.store = RosMessages("sqlite3").store
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._sequence = 0
         self.gid = bytes(range(16))
 
     def key(self, topic: str, msgtype: str) -> str:
-        return rmw_zenoh_key(topic, msgtype) if self.mapping == "rmw_zenoh" else topic.strip("/")
+        if self.mapping == "rmw_zenoh":
+            return rmw_zenoh_key(topic, msgtype)
+        return "/".join(p for p in (self.namespace, topic.strip("/")) if p)
 
     def publisher(self, topic: str, msgtype: str, timeout: float = 30.0) -> zenoh.Publisher:
         """The topic's publisher, once a subscriber matches it."""

@@ -1,5 +1,5 @@
 """The live source's handling of samples, in order, by a real Agent (offline: its outbox fills) on a
-real Zenoh session; the samples are rosbags' CDR on rmw_zenoh keys."""
+real Zenoh session; the samples are rosbags' CDR on rmw_zenoh keys, or put on a bridge's keys."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from services.ros2.config import Ros2Config
 from services.ros2.live import LiveSource
 from services.zenoh_config import zenoh_config
 from support.net import free_port
-from support.ros2_robot import MOUNT, rmw_zenoh_key
+from support.ros2_robot import MOUNT, RosRobot, rmw_zenoh_key
 from support.rosbags_written import LASER_SCAN, ODOMETRY, PATH, POINT_CLOUD2, TF, RosMessages
 
 M = RosMessages("sqlite3")
@@ -45,6 +45,11 @@ class Live:
         if key is None and self.source.ros.mapping == "bridge":
             key = topic.strip("/")
         self.source.handle(role, key or rmw_zenoh_key(topic, msgtype), payload, attachment)
+
+    def receive(self, count: int):
+        """Handle the next `count` samples the source's subscribers queued, as its thread does."""
+        for _ in range(count):
+            self.source.handle(*self.source._inbox.get(timeout=10))
 
     def scan(self, stamp: float):
         self.put("/scan", LASER_SCAN, M.laser_scan(stamp, "laser", RANGES, -1.0, 0.02, 0.0, 30.0))
@@ -179,6 +184,27 @@ def test_bridge_keys_name_no_type_so_the_bytes_tell_laser_scan_from_point_cloud(
         assert [m.dim for m in ros.scans().values()] == [dim]
         ros.put("/scan", ODOMETRY, M.odometry(2.7, "odom", "base_link", MOUNT), key="scan")  # neither
         assert ros.source.counts["bad"] == 1
+
+
+def test_a_bridge_with_a_namespace_puts_it_before_absolute_and_relative_names(live):
+    """zenoh-bridge-ros2dds started with namespace bot1 routes a DDS robot's /scan, /odom and
+    /tf_static as bot1/scan, bot1/odom and bot1/tf_static: the agent's /scan, /odom and (relative)
+    tf_static with --ros-namespace bot1 are those keys."""
+    ros = live(mapping="bridge", namespace="bot1", odom_topic="/odom")
+    assert ros.source.describe() == "scan bot1/scan, tf_static bot1/tf_static, odom bot1/odom"
+    robot = RosRobot(ros.session, "bridge", namespace="bot1")
+    try:
+        robot.publish("/tf_static", TF, M.tf([(0.0, "base_link", "laser", MOUNT)]))
+        for stamp, x in ((10.0, 1.0), (11.0, 2.0)):
+            body = Pose.from_quaternion([x, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+            robot.publish("/odom", ODOMETRY, M.odometry(stamp, "odom", "base_link", body))
+        robot.publish("/scan", LASER_SCAN, M.laser_scan(10.5, "laser", RANGES, -1.0, 0.02, 0.0, 30.0))
+        ros.receive(4)
+    finally:
+        robot.close()
+    [message] = ros.scans().values()
+    np.testing.assert_allclose(message.pose.as_xytheta(), expected_laser(1.5), atol=1e-5)
+    assert ros.source.counts["bad"] == 0
 
 
 def test_a_long_run_keeps_its_poses_bounded_and_right(live):

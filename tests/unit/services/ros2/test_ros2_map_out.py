@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
@@ -49,7 +50,16 @@ def test_cells_2d_and_3d_against_loops():
             assert projected[iy, ix] == (max(seen) if seen else -1)
 
 
-def test_a_3d_map_goes_out_as_the_projection_of_its_z_band_and_each_robots_path(tmp_path):
+@pytest.mark.parametrize(
+    "layout, grid_key, path_key",
+    [
+        ({}, "0/map/**", "0/r_1/trajectory/**"),
+        # a bridge started with namespace fleet routes Zenoh's fleet/map to the DDS side's /map
+        ({"mapping": "bridge", "namespace": "fleet"}, "fleet/map", "fleet/r_1/trajectory"),
+    ],
+    ids=["rmw_zenoh", "bridge"],
+)
+def test_a_3d_map_goes_out_as_the_projection_of_its_z_band_and_each_robots_path(layout, grid_key, path_key):
     """A FleetMap of two 3D scans published on a real session; a subscriber of the same session
     decodes the grid and the trajectory with rosbags."""
     rng = np.random.default_rng(0)
@@ -59,12 +69,12 @@ def test_a_3d_map_goes_out_as_the_projection_of_its_z_band_and_each_robots_path(
     for node, pose in enumerate(poses):
         model = fit_scan(wall - pose.t, np.zeros((0, 3)), FitConfig().for_dimension(3))
         fleet_map.add_scan(ScanMessage("f", "r-1", node, float(node), model, pose))
-    ros = Ros2Config(map_topic="/map", map_period=0.1, map_resolution=0.25, map_z="0.0,1.0")
+    ros = Ros2Config(map_topic="/map", map_period=0.1, map_resolution=0.25, map_z="0.0,1.0", **layout)
     session = zenoh.open(timestamped(zenoh_config("peer")))
     received: dict[str, list] = {"grid": [], "path": []}
     subscribers = [
-        session.declare_subscriber("0/map/**", lambda s: received["grid"].append(s.payload.to_bytes())),
-        session.declare_subscriber("0/r_1/trajectory/**", lambda s: received["path"].append(s.payload.to_bytes())),
+        session.declare_subscriber(grid_key, lambda s: received["grid"].append(s.payload.to_bytes())),
+        session.declare_subscriber(path_key, lambda s: received["path"].append(s.payload.to_bytes())),
     ]
     publisher = RosMapPublisher(session, fleet_map, ros, "f")
     try:

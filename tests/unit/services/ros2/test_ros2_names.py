@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import zenoh
 
+from services.ros2.config import Ros2Config
 from services.ros2.names import (
     KEEP_LAST,
     RELIABLE,
@@ -47,6 +48,19 @@ def test_a_subscription_matches_publications_of_any_hash_and_no_other_topic(mapp
         assert zenoh.KeyExpr(keys.subscription).intersects(zenoh.KeyExpr(kilted))
         assert not zenoh.KeyExpr(keys.subscription).intersects(zenoh.KeyExpr(published.replace("3/", "0/", 1)))
         assert keys.message_type(published) == "sensor_msgs/msg/LaserScan"
+
+
+def test_a_bridges_namespace_goes_before_absolute_names_too_and_rmw_zenohs_does_not():
+    bridge = Ros2Config(mapping="bridge", namespace="/bot1")
+    for topic in ("/scan", "scan"):  # zenoh-bridge-ros2dds' ros2_name_to_key_expr: namespace / name
+        keys = TopicKeys.of(topic, bridge)
+        assert keys.name == "/scan" and keys.publication("sensor_msgs/msg/LaserScan", "jazzy") == "bot1/scan"
+        assert keys.subscription == "bot1/scan"
+    assert TopicKeys.of("/slam/path", Ros2Config(mapping="bridge")).subscription == "slam/path"
+    rmw_zenoh = Ros2Config(domain=3, namespace="/bot1")
+    assert TopicKeys.of("/scan", rmw_zenoh).subscription == "3/scan/*/*"
+    assert TopicKeys.of("scan", rmw_zenoh).subscription == "3/bot1/scan/*/*"
+    assert TopicKeys.of("scan", rmw_zenoh).name == "/bot1/scan"
 
 
 def test_type_names():
