@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from services.cli_flags import (
+    Parser,
     config_flag,
     fit_flags,
     http_client_flags,
@@ -257,7 +258,7 @@ def _robot_ids(text: str) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gmmap", description="Gaussian-mixture occupancy maps for robot fleets")
+    parser = Parser(prog="gmmap", description="Gaussian-mixture occupancy maps for robot fleets")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("replay", help="fit and reconstruct a log offline; write the map as npz and PNG")
@@ -273,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--bbox",
         type=_floats,
         default=None,
-        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax (use --bbox=...); default the data's extent",
+        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax; default the data's extent",
     )
     p.add_argument("--keep-fraction", type=float, default=1.0, help="keep this seeded fraction of the beams")
     p.add_argument("--seed", type=int, default=0)
@@ -549,7 +550,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--bbox",
         type=_floats,
         default=None,
-        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax (use --bbox=...); default the whole map",
+        help="xmin,ymin,xmax,ymax or xmin,ymin,zmin,xmax,ymax,zmax; default the whole map",
     )
     p.add_argument(
         "--resolution",

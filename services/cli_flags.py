@@ -7,10 +7,46 @@ overrides the sections' own defaults (shown in the help).
 from __future__ import annotations
 
 import argparse
+import sys
 
 from services.config import GmmapConfig, load_config
 
 DEFAULTS = GmmapConfig()
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, which also takes a flag's comma-separated numbers that begin with a negative
+    one as a separate argument (`--bbox -5,-5,5,5`, `--ros-map-z -1,2`), as it takes `--bbox=-5,-5,5,5`."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        argv = sys.argv[1:] if args is None else list(args)
+        return super().parse_known_args(joined_number_lists(argv), namespace)
+
+
+def joined_number_lists(argv: list[str]) -> list[str]:
+    """`--flag -1,2` as `--flag=-1,2`. argparse takes an argument that begins with '-' and is not one
+    plain negative number for a flag of its own, and refuses it: a comma-separated list of numbers is
+    never a flag, so joining it to the flag before it only turns that refusal into the value meant."""
+    joined: list[str] = []
+    for k, arg in enumerate(argv):
+        if arg == "--":  # positionals from here on
+            return joined + argv[k:]
+        previous = joined[-1] if joined else ""
+        if previous.startswith("--") and "=" not in previous and _negative_number_list(arg):
+            joined[-1] = f"{previous}={arg}"
+        else:
+            joined.append(arg)
+    return joined
+
+
+def _negative_number_list(text: str) -> bool:
+    if not (text.startswith("-") and "," in text):
+        return False
+    try:
+        [float(v) for v in text.split(",")]
+    except ValueError:
+        return False
+    return True
 
 
 def setting(p: argparse.ArgumentParser, flag: str, key: str, **kwargs) -> None:
