@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 from gmm_core import Pose
 from services.datasets import FORMATS, RangeScan, match_by_timestamp, read_scans
@@ -39,10 +40,15 @@ class Node:
 
 
 def parse_source(text: str) -> tuple[str | None, str]:
-    """ "carmen:PATH" -> ("carmen", PATH); a bare path leaves the format to be guessed (None)."""
+    """ "carmen:PATH" -> ("carmen", PATH); a bare path leaves the format to be guessed (None). A path
+    may hold colons, so an unknown prefix is read as part of it; only where no such path exists is the
+    prefix named as an unknown kind."""
     fmt, sep, path = text.partition(":")
     if sep and fmt in FORMATS:
         return fmt, path
+    if sep and fmt.isidentifier() and not Path(text).exists():
+        known = ", ".join((*FORMATS, "sim", "ros2"))
+        raise ValueError(f"--source: unknown source kind {fmt!r} (known: {known}) and no file or directory {text!r}")
     return None, text
 
 

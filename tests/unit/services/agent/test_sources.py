@@ -1,11 +1,13 @@
-"""The back ends that correct an agent's nodes: a log's fixed poses, a simulated optimiser's."""
+"""The back ends that correct an agent's nodes: a log's fixed poses, a simulated optimiser's; what a
+--source names."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from gmm_core import Pose
-from services.agent.sources import FixedCorrections, Node, RelaxingCorrections
+from services.agent.sources import FixedCorrections, Node, RelaxingCorrections, load_nodes, parse_source
 
 
 def node(k: int, error: float) -> Node:
@@ -41,3 +43,15 @@ def test_a_log_back_end_gives_the_corrected_poses_as_they_are():
     nodes = {k: node(k, 0.3) for k in range(3)}
     poses = FixedCorrections().closure(nodes, final=False)
     assert all(poses[k] is nodes[k].corrected for k in nodes)
+
+
+def test_a_source_is_a_known_kind_a_path_with_colons_or_named_as_an_unknown_kind(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run:3.xyz").write_text("1 0 0\n0 1 0.5\n")
+    assert parse_source("carmen:run:3.log") == ("carmen", "run:3.log")
+    assert parse_source("run:3.xyz") == (None, "run:3.xyz")  # 'run' is no kind, but the file is there
+    assert len(load_nodes("run:3.xyz")) == 1  # the xyz format guessed, colon and all
+    with pytest.raises(ValueError, match=r"unknown source kind 'foo' \(known: carmen, .*rosbag, sim, ros2\)"):
+        load_nodes("foo:/dir")
+    with pytest.raises(FileNotFoundError, match="no such file or directory"):  # a path, not a kind
+        load_nodes(str(tmp_path / "gone:1.xyz"))
