@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from gmm_core import em
+from gmm_core.hash_grid import _block_cell_order, _candidates, _hash_grid
 from gmm_core.mixture import Mixture
 from gmm_core.rings import ring_spacing, with_footprint
 from gmm_core.voxel_merge import merge_voxels
@@ -277,8 +278,8 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     m, d = means.shape
     k_count = weights.shape[0]
     n_blocks = max(1, min(em._MAX_BLOCKS, m // (_BLOCK_VOXELS_PER_COMPONENT * k_count)))
-    lo, cell, dims = em._hash_grid(means, k_count, m * _CELLS_PER_VOXEL)
-    order, voxel_cell = em._block_cell_order(means, n_blocks, lo, cell, dims)
+    lo, cell, dims = _hash_grid(means, k_count, m * _CELLS_PER_VOXEL)
+    order, voxel_cell = _block_cell_order(means, n_blocks, lo, cell, dims)
     means, sums, scatter = means[order], sums[order], scatter[order]
     total_weight = sums[:, 0].sum()
     fresh = np.zeros((2, n_blocks, k_count, sums.shape[1]))  # each block's sums: this pass, the last
@@ -288,7 +289,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
     packed = np.empty((k_count, _ROW))
     kept = np.empty((m, n_kept), dtype=np.int64)
     n_kept_of = np.zeros(m, dtype=np.int64)
-    start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+    start, items = _candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
     _pack_components(weights, mu, covs, packed)
     previous = -np.inf
     passes = 0
@@ -297,7 +298,7 @@ def _voxel_em(means, sums, scatter, weights, mu, covs, reg_covar, max_iter, tol,
         search = passes == 1 or (search_every > 0 and (passes - 1) % search_every == 0)
         if search and passes > 1:
             _unpack(total, plain, reg_covar, weights, mu, covs)
-            start, items = em._candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
+            start, items = _candidates(weights, mu, covs, lo, cell, dims, _SEARCH_BOX_SIGMAS)
         now, last = fresh[passes % 2], fresh[(passes + 1) % 2]
         # A search changes the kept lists, so the change of a block's sums since its last pass is
         # no EM step to move further along.

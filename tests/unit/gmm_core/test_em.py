@@ -8,6 +8,7 @@ from sklearn.mixture import GaussianMixture
 
 from gmm_core import FitConfig, em, fit_scan
 from gmm_core.em import fit_mixture
+from gmm_core.hash_grid import _candidates, _cell_of, _hash_grid
 
 
 def test_mean_log_likelihood_matches_scikit_learn_on_intel_scans(intel_scans):
@@ -62,14 +63,14 @@ def test_sparse_e_step_matches_the_dense_one(dim):
     mix = fit_mixture(points, 80)
     weights, means, covs = mix.weights, mix.means, mix.covariances
     k = len(weights)
-    lo, cell, dims = em._hash_grid(points, k, len(points))
-    cells = np.array([em._cell_of(points, i, lo, cell, dims) for i in range(len(points))])
+    lo, cell, dims = _hash_grid(points, k, len(points))
+    cells = np.array([_cell_of(points, i, lo, cell, dims) for i in range(len(points))])
     order = np.argsort(cells, kind="stable")
     x, cells = points[order], cells[order]
     features = em._features(x)
     prec, log_norm = np.empty((k, dim, dim)), np.empty(k)
     em._prepare(weights, means, covs, prec, log_norm)
-    start, items = em._candidates(weights, means, covs, lo, cell, dims, 5.0)
+    start, items = _candidates(weights, means, covs, lo, cell, dims, 5.0)
     assert (np.diff(start)[cells] < k).all()  # the grid does prune
     stats = np.empty((k, features.shape[1]))
     ll = em._e_step_block(x, features, cells, 0, len(x), start, items, prec, means, log_norm, stats)
