@@ -1,10 +1,10 @@
 """Expectation-maximisation for a Gaussian mixture (Sec. III-A), in numba.
 
-Initialised by seeded k-means++ and a few Lloyd iterations, like scikit-learn's GaussianMixture,
-so the two reach the same kind of optimum; in 3D, two such starts get a few EM passes each and
-the more likely one goes on (the seed moves a 3D fit's log-likelihood more than anything else
-does). Coarse to fine: EM converges on a seeded subset of about 40 points per component, then a
-bounded number of passes over every point polishes it.
+Initialised by seeded k-means++ and a few Lloyd iterations (gmm_core.kmeans), like
+scikit-learn's GaussianMixture, so the two reach the same kind of optimum; in 3D, two such starts
+get a few EM passes each and the more likely one goes on (the seed moves a 3D fit's
+log-likelihood more than anything else does). Coarse to fine: EM converges on a seeded subset of
+about 40 points per component, then a bounded number of passes over every point polishes it.
 The E-step only visits the components whose 5-sigma box holds the point (a hash grid of
 component boxes, gmm_core.hash_grid), so a 3D scan with many components costs a few component
 evaluations per point, not K; it is fused with the sums of the M-step, and the M-step runs after
@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from gmm_core.hash_grid import _block_cell_order, _candidates, _hash_grid
+from gmm_core.kmeans import _kmeans_labels
 from gmm_core.mixture import Mixture
 
 _LOG_2PI = np.log(2.0 * np.pi)
@@ -36,83 +37,6 @@ _BLOCK_POINTS_PER_COMPONENT = 10
 _TRIAL_PASSES = 8
 _TRIAL_SEED_STEP = 1_000_003
 _BOX_SIGMAS = 5.0
-
-
-@njit(cache=True)
-def _squared_distances(columns, x, out):
-    """out[i] = |p_i - x|^2 for points stored as (d, n) columns, a loop numba vectorises."""
-    out[:] = 0.0
-    for a in range(columns.shape[0]):
-        for i in range(columns.shape[1]):
-            t = columns[a, i] - x[a]
-            out[i] += t * t
-
-
-@njit(cache=True)
-def _kmeans_labels(points, n_clusters, seed, max_iter):
-    """k-means++ seeding then Lloyd iterations, as scikit-learn initialises its EM.
-
-    Seeded, so the same points always give the same mixture.
-    """
-    np.random.seed(seed)
-    n, d = points.shape
-    columns = np.ascontiguousarray(points.T)
-    centres = np.empty((n_clusters, d))
-    centres[0] = points[np.random.randint(n)]
-    closest = np.empty(n)
-    _squared_distances(columns, centres[0], closest)
-    n_trials = 2 + int(np.log(n_clusters))
-    candidate = np.empty(n)
-    best_closest = np.empty(n)
-    for k in range(1, n_clusters):
-        # Greedy k-means++: draw a few seeds with probability proportional to D^2 and keep
-        # the one that lowers the potential most (Arthur & Vassilvitskii; scikit-learn's rule).
-        total = closest.sum()
-        best_potential = np.inf
-        for _ in range(n_trials):
-            target = np.random.random() * total
-            pick, acc = n - 1, 0.0
-            for i in range(n):
-                acc += closest[i]
-                if acc >= target:
-                    pick = i
-                    break
-            _squared_distances(columns, points[pick], candidate)
-            potential = 0.0
-            for i in range(n):
-                candidate[i] = min(closest[i], candidate[i])
-                potential += candidate[i]
-            if potential < best_potential:
-                best_potential = potential
-                centres[k] = points[pick]
-                best_closest[:] = candidate
-        closest[:] = best_closest
-    labels = np.zeros(n, dtype=np.int64)
-    previous = np.empty(n, dtype=np.int64)
-    nearest = np.empty(n)
-    distance = np.empty(n)
-    counts = np.zeros(n_clusters)
-    for it in range(max_iter):
-        # Assignment one centre at a time over all points, so the inner loop is contiguous.
-        previous[:] = labels
-        nearest[:] = np.inf
-        for k in range(n_clusters):
-            _squared_distances(columns, centres[k], distance)
-            for i in range(n):
-                if distance[i] < nearest[i]:
-                    nearest[i] = distance[i]
-                    labels[i] = k
-        if it > 0 and (labels == previous).all():
-            break
-        centres[:] = 0.0
-        counts[:] = 0.0
-        for i in range(n):
-            counts[labels[i]] += 1.0
-            centres[labels[i]] += points[i]
-        for k in range(n_clusters):
-            if counts[k] > 0:
-                centres[k] /= counts[k]
-    return labels
 
 
 @njit(cache=True)
