@@ -1,6 +1,6 @@
 """What crosses the wire between robots and map servers: messages, codec, key expressions."""
 
-from protocol.codec import ENCODINGS, MAX_BYTES, MAX_COMPONENTS, VERSION, decode, encode
+from protocol.codec import MAX_BYTES, MAX_COMPONENTS, VERSION, decode, encode
 from protocol.errors import ProtocolError
 from protocol.keys import (
     ack_key,
@@ -28,6 +28,7 @@ from protocol.messages import (
     ScanMessage,
     StoreInventory,
 )
+from protocol.scan_codec import ENCODINGS
 
 __all__ = [
     "ENCODINGS",
