@@ -1,10 +1,11 @@
-"""protocol/: round trips, bounds of the quantisation, validation at decode, sizes, fuzz (keys: test_keys.py)."""
+"""protocol/scan_codec.py: scans round trip in both encodings within the stated bounds of the
+quantisation, their sizes, and each rule of a scan's validation, at decode and at encode, naming
+its field."""
 
 from __future__ import annotations
 
 import math
 
-import msgpack
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -13,34 +14,14 @@ from hypothesis import strategies as st
 from gmm_core.mixture import Mixture
 from gmm_core.pose import Pose
 from gmm_core.scan import ScanModel
-from protocol import (
-    Ack,
-    MapQuery,
-    MapReply,
-    PointQuery,
-    PointReply,
-    PoseGraphUpdate,
-    ProtocolError,
-    ScanMessage,
-    decode,
-    encode,
-)
+from protocol import PointQuery, ProtocolError, ScanMessage, decode, encode
 from protocol import quantize as qz
-from protocol.codec import UNCHECKED
-from support.fuzz import mutate, random_rotations, scan_like_mixture, scan_message, seed_messages
-from support.golden import version_2_update
+from support.fuzz import random_rotations, scan_like_mixture, scan_message
+from support.wire_maps import pack, set_path, wire, without
 
 pytestmark = pytest.mark.filterwarnings("error")  # a numpy warning means a value slipped through
 
 HYPOTHESIS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def wire(message, encoding="q") -> dict:
-    return msgpack.unpackb(encode(message, encoding), raw=False)
-
-
-def pack(raw: dict) -> bytes:
-    return msgpack.packb(raw, use_bin_type=True)
 
 
 # --- generators: mixtures with the awkward cases a scan fit produces
@@ -176,35 +157,6 @@ def test_q_keeps_the_2d_fold_of_axes_consistent():
     np.testing.assert_allclose(got.covariances, covs, atol=0.04 * 4.0)
 
 
-def test_other_messages_round_trip():
-    poses = ((3, Pose.from_xytheta(1, 2, 0.5)), (9, Pose.from_xytheta(-1, 0, -3.0)))
-    update = decode(encode(PoseGraphUpdate("f", "r", 12, poses, Pose.from_xytheta(1e6, 5e6, 0.1))))
-    assert update.revision == 12 and [node for node, _ in update.poses] == [3, 9]
-    np.testing.assert_allclose(update.poses[1][1].R, poses[1][1].R, atol=1e-9)  # 2pi / 2^32 steps
-    np.testing.assert_allclose(update.poses[1][1].t, poses[1][1].t, atol=0.5e-4, rtol=0)  # 0.1 mm steps
-    np.testing.assert_array_equal(update.anchor.t, [1e6, 5e6])  # the anchor is float64 on the wire
-    update3 = decode(encode(PoseGraphUpdate("f", "r", 0, ((0, Pose.from_quaternion([1, 2, 3], [1, 2, 3, 4])),))))
-    assert update3.anchor is None and update3.dim == 3
-    assert decode(encode(Ack("f", "r", "s1", "poses", (12,)))) == Ack("f", "r", "s1", "poses", (12,))
-    queued = Ack("f", "r", "s1", "scan", (1, 2), queued=(3,))
-    assert decode(encode(queued)) == queued
-    query = decode(encode(MapQuery("f", [0, 0, 0], [1, 2, 3], 0.05, ("a", "b"))))
-    assert query.robots == ("a", "b") and query.resolution == 0.05
-    np.testing.assert_array_equal(query.hi, [1, 2, 3])
-    assert decode(encode(MapQuery("f", [0, 0], [1, 1], 0.1))).robots is None
-    grid = np.random.default_rng(0).uniform(size=(3, 4)).astype(np.float32)
-    reply = decode(encode(MapReply("f", [1.0, 2.0], 0.1, grid)), expect=MapReply)
-    np.testing.assert_array_equal(reply.probabilities, grid)
-    points = np.random.default_rng(1).normal(0, 50, (5, 3))
-    asked = decode(encode(PointQuery("f", points, 0.2, ("b", "a"), "analytic")), expect=PointQuery)
-    assert (asked.dim, asked.resolution, asked.robots, asked.method) == (3, 0.2, ("b", "a"), "analytic")
-    np.testing.assert_array_equal(asked.points, points)  # float64 on the wire, as a MapQuery's box
-    assert decode(encode(PointQuery("f", [[1.0, 2.0]], 0.05))).method == "auto"
-    answered = decode(encode(PointReply("f", 0.2, grid[0], "mc")), expect=PointReply)
-    assert answered.method == "mc" and answered.resolution == 0.2
-    np.testing.assert_array_equal(answered.probabilities, grid[0])
-
-
 # --- sizes: the targets of the issue, every byte of the message counted
 
 
@@ -231,22 +183,6 @@ def with_table(raw: dict, edit) -> dict:
     table = f32_table(raw)
     edit(table)
     raw["O"]["c"] = table.astype("<f4").tobytes()
-    return raw
-
-
-def without(raw: dict, *path) -> dict:
-    target = raw
-    for key in path[:-1]:
-        target = target[key]
-    del target[path[-1]]
-    return raw
-
-
-def set_path(raw: dict, path: tuple, value) -> dict:
-    target = raw
-    for key in path[:-1]:
-        target = target[key]
-    target[path[-1]] = value
     return raw
 
 
@@ -347,117 +283,6 @@ def test_3d_pose_quaternion_must_be_unit():
         decode(pack(raw))
 
 
-@pytest.mark.parametrize("data", [b"", b"\xc1", b"\x93\x01\x02", b"\xa3abc", b"\x81\xa1v"])
-def test_malformed_msgpack(data):
-    with pytest.raises(ProtocolError) as caught:
-        decode(data)
-    assert caught.value.field == "message"
-
-
-def test_limits():
-    data = encode(scan_message(np.random.default_rng(0), 2, 50, 5))
-    assert decode(data, max_components=55).model.n_components == 55
-    with pytest.raises(ProtocolError, match="^components: 55 components exceed"):
-        decode(data, max_components=54)
-    with pytest.raises(ProtocolError, match="^message: payload of"):
-        decode(data, max_bytes=len(data) - 1)
-    with pytest.raises(ProtocolError, match="^message: must be bytes"):
-        decode("text")
-    with pytest.raises(ProtocolError, match="^type: expected PoseGraphUpdate"):
-        decode(data, expect=PoseGraphUpdate)
-    duplicate = b"\x82\xa1v\x01\xa1v\x01"
-    with pytest.raises(ProtocolError, match="^message: malformed"):
-        decode(duplicate)
-
-
-INVALID_OTHERS = [
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (2, Pose.identity(2)))),
-        lambda r: set_path(r, ("nodes",), np.array([4, 4], "<u8").tobytes()),  # an empty range
-        "poses.nodes",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)), (3, Pose.identity(2)))),
-        lambda r: set_path(r, ("nodes",), np.array([1, 2, 2, 3], "<u8").tobytes()),  # touching ranges
-        "poses.nodes",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("nodes",), np.array([2**63, 2**63 + 1], "<u8").tobytes()),
-        "poses.nodes",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("nodes",), np.array([1], "<u8").tobytes()),  # a start without its stop
-        "poses.nodes",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("nodes",), np.array([0, 2**62], "<u8").tobytes()),  # 2^62 poses: not sent
-        "poses.poses",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)),
-        lambda r: set_path(r, ("poses",), r["poses"][:-4]),
-        "poses.poses",
-    ),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(3)),)),
-        lambda r: set_path(r, ("poses",), np.array([0, 0, 0, 2**31 - 1, 2**31 - 1, 0, 0], "<i4").tobytes()),
-        "poses.poses",  # a quaternion of norm sqrt(2)
-    ),
-    (PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(2)),)), lambda r: set_path(r, ("rev",), -2), "revision"),
-    (
-        PoseGraphUpdate("f", "r", 1, ((1, Pose.identity(3)),)),
-        lambda r: set_path(r, ("anchor",), np.array([0, 0, 0, 0, 0, 0, 0], "<f8").tobytes()),
-        "anchor",
-    ),
-    (PoseGraphUpdate("f", "r", 1, (), Pose.identity(2)), lambda r: set_path(r, ("anchor",), None), "poses"),
-    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("kind",), "map"), "kind"),
-    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("ids",), b"\x01\x02"), "ids"),
-    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("store",), "a/b"), "store"),
-    (Ack("f", "r", "s", "scan", (1,)), lambda r: set_path(r, ("queued",), None), "queued"),
-    (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("hi",), r["lo"]), "bbox"),
-    (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("res",), 0.0), "resolution"),
-    (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("robots",), ["ok", "no/slash"]), "robots"),
-    (MapQuery("f", [0, 0], [1, 1], 0.1), lambda r: set_path(r, ("robots",), "ok"), "robots"),
-    (MapReply("f", [0, 0], 0.1, np.zeros((2, 2))), lambda r: set_path(r, ("shape",), [2, 3]), "probabilities"),
-    (MapReply("f", [0, 0], 0.1, np.zeros((2, 2))), lambda r: set_path(r, ("shape",), [4]), "shape"),
-    (
-        MapReply("f", [0, 0], 0.1, np.zeros((2, 2))),
-        lambda r: set_path(r, ("p",), np.array([0, 0.5, 1, 1.5], "<f4").tobytes()),
-        "probabilities",
-    ),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 3), "points"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 0), "count"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("n",), 10_001), "count"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("d",), 4), "dimension"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("m",), "exact"), "method"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("m",), None), "method"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("res",), -1.0), "resolution"),
-    (PointQuery("f", [[0, 0], [1, 1]], 0.1), lambda r: set_path(r, ("robots",), ["a b"]), "robots"),
-    (
-        PointQuery("f", [[0, 0], [1, 1]], 0.1),
-        lambda r: set_path(r, ("p",), np.array([0, 0, np.nan, 1], "<f8").tobytes()),
-        "points",
-    ),
-    (PointReply("f", 0.1, [0.5], "mc"), lambda r: set_path(r, ("m",), "auto"), "method"),
-    (PointReply("f", 0.1, [0.5], "mc"), lambda r: set_path(r, ("p",), b""), "probabilities"),
-    (
-        PointReply("f", 0.1, [0.5], "mc"),
-        lambda r: set_path(r, ("p",), np.array([2.0], "<f4").tobytes()),
-        "probabilities",
-    ),
-]
-
-
-@pytest.mark.parametrize("message, edit, field", INVALID_OTHERS)
-def test_invalid_other_messages_name_field(message, edit, field):
-    with pytest.raises(ProtocolError) as caught:
-        decode(pack(edit(wire(message))))
-    assert caught.value.field == field
-
-
 def test_encode_refuses_what_decode_would_reject():
     rng = np.random.default_rng(5)
     good = scan_like_mixture(rng, 2, 4)
@@ -489,109 +314,3 @@ def test_encode_refuses_what_decode_would_reject():
         assert caught.value.field == field
     with pytest.raises(ProtocolError, match="^method:"):
         PointQuery("f", [[0.0, 0.0]], 0.1, None, "exact")
-
-
-# --- fuzz: random and mutated bytes see only ProtocolError or a valid message
-
-
-def test_fuzz_sees_only_protocol_errors():
-    rng = np.random.default_rng(2024)
-    seeds = seed_messages(rng)
-    valid = 0
-    for case in range(4000):
-        _, data = mutate(rng, seeds[case % len(seeds)])
-        try:
-            message = decode(data)
-        except ProtocolError as error:
-            assert not error.message.startswith(UNCHECKED), error  # every rejection is a named check
-            continue
-        valid += 1
-        try:
-            decode(encode(message))  # whatever decodes can be forwarded
-        except ProtocolError as error:  # but a version-2 pose beyond version 3's ±214 km
-            assert isinstance(message, PoseGraphUpdate) and error.field == "poses.poses", error
-            assert "beyond ±214748.3647 m" in error.message
-    assert 0 < valid < 4000
-
-
-def test_rejection_round_trip_and_never_mistaken_for_an_ack():
-    from protocol import Rejection
-
-    refusal = Rejection("f", "r", "s1", "scan", (3, 4), "quota", "robot r holds 512 MiB")
-    assert decode(encode(refusal)) == refusal
-    with pytest.raises(ProtocolError, match="type"):  # a receiver that waits for Acks drops it
-        decode(encode(refusal), expect=Ack)
-    for bad, field in (
-        (dict(reason="no quota"), "reason"),
-        (dict(detail="x" * 1001), "detail"),
-        (dict(kind="map"), "kind"),
-        (dict(ids=(-1,)), "ids"),
-    ):
-        args = dict(fleet="f", robot="r", store="s1", kind="scan", ids=(1,), reason="quota", detail="") | bad
-        with pytest.raises(ProtocolError, match=field):
-            Rejection(**args)
-
-
-def test_store_inventory_round_trip_and_ranges():
-    from protocol import StoreInventory
-
-    nodes = [0, 1, 2, 5, 7, 8, 9, 2**40]
-    inventory = StoreInventory.of("f", "r", "s1", nodes, revision=4)
-    assert inventory.ranges == ((0, 3), (5, 6), (7, 10), (2**40, 2**40 + 1))
-    assert decode(encode(inventory)) == inventory
-    assert [n in inventory for n in range(11)] == [n in nodes for n in range(11)] and 2**40 in inventory
-    assert len(inventory) == len(nodes)
-    assert decode(encode(StoreInventory.of("f", "r", "s1", []))).revision is None
-    for bad in (((3, 3),), ((0, 2), (2, 4)), ((5, 6), (0, 1))):  # empty, touching, unsorted
-        with pytest.raises(ProtocolError, match="ranges"):
-            StoreInventory("f", "r", "s1", bad)
-
-
-def test_a_version_1_message_is_refused_with_what_changed():
-    old = pack({"v": 1, "t": 3, "f": "f", "r": "r", "kind": "scan", "ids": b""})
-    with pytest.raises(
-        ProtocolError, match=r"^version: unsupported version 1, this decoder reads 2 and 3 \(version 2: ackn"
-    ):
-        decode(old)
-    with pytest.raises(ProtocolError, match=r"^version: unsupported version 4, this decoder reads 2 and 3$"):
-        decode(pack(wire(Ack("f", "r", "s", "scan", (1,))) | {"v": 4}))
-
-
-def test_version_2_messages_of_every_type_still_decode():
-    """Stores and outboxes hold version-2 bytes: every type but the pose-graph update is the same
-    map under v 2; a v2 update lists nodes one by one with float64 poses (its golden vector: poses_2d_v2)."""
-    rng = np.random.default_rng(3)
-    for message, encoding in (
-        (scan_message(rng, 2, 8, 2), "q"),
-        (scan_message(rng, 3, 8, 2), "f32"),
-        (Ack("f", "r", "s", "scan", (1, 2), (3,)), "q"),
-        (MapQuery("f", [0, 0], [1, 1], 0.1, ("a",)), "q"),
-        (MapReply("f", [0, 0], 0.1, np.full((2, 3), 0.5)), "q"),
-        (PointQuery("f", [[0, 0]], 0.1, None, "mc"), "q"),
-        (PointReply("f", 0.1, [0.25], "analytic"), "q"),
-    ):
-        raw = wire(message, encoding)
-        assert raw["v"] == 3
-        assert encode(decode(pack(raw | {"v": 2})), encoding) == encode(message, encoding)
-    poses = ((9, Pose.from_xytheta(1.23456789, -2.0, 0.3)), (2, Pose.from_xytheta(-5.0, 0.5, -1.0)))
-    v2 = version_2_update(PoseGraphUpdate("f", "r", 4, poses))
-    update = decode(v2)
-    assert [node for node, _ in update.poses] == [2, 9]
-    assert update.poses[1][1].t.tolist() == [1.23456789, -2.0]  # float64, as sent
-    assert update.poses[0][1].as_xytheta()[2] == pytest.approx(-1.0, abs=1e-15)
-    raw = msgpack.unpackb(v2, raw=False)
-    with pytest.raises(ProtocolError, match="^poses.poses: must hold 6 x 8 bytes"):
-        decode(pack(raw | {"poses": raw["poses"][:-8]}))
-
-
-def test_pose_translations_beyond_the_int32_codes_are_refused_by_the_encoder():
-    edge = 214748.3647  # 2^31 - 1 steps of 0.1 mm
-    update = decode(encode(PoseGraphUpdate("f", "r", 1, ((1, Pose.from_xytheta(edge, -edge, 0.0)),))))
-    assert update.poses[0][1].t.tolist() == [edge, -edge]
-    for t in ([edge + 1e-4, 0.0], [0.0, -edge - 2e-4]):
-        with pytest.raises(ProtocolError, match="^poses.poses: translation .* beyond"):
-            encode(
-                PoseGraphUpdate("f", "r", 1, ((1, Pose.from_xytheta(0.0, 0.0, 0.0)), (2, Pose.from_xytheta(*t, 0.0))))
-            )
-    far = Pose.from_quaternion([5e6, -3e6, 100.0], [1.0, 0.0, 0.0, 0.0])  # UTM-like: the anchor is float64
-    assert decode(encode(PoseGraphUpdate("f", "r", 1, (), far))).anchor.t.tolist() == [5e6, -3e6, 100.0]
