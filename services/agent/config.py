@@ -7,7 +7,7 @@ from pathlib import Path
 
 from gmm_core.validation import require_count, require_number
 from protocol import ENCODINGS, check_id
-from services.zenoh_config import DEFAULT_ENDPOINT
+from services.zenoh_config import DEFAULT_ENDPOINT, check_endpoints
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,7 @@ class AgentConfig:
             require_count("agent.update_every", self.update_every, minimum=0)
         if not self.zenoh_connect:
             raise ValueError("agent.zenoh_connect: an agent needs an endpoint to connect to")
+        check_endpoints("agent.zenoh_connect", self.zenoh_connect)
 
     def reader_options(self) -> dict[str, str]:
         """The source options given, as services.datasets.read_scans takes them."""
