@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from gmm_core.scan import DENSE_3D_COMPONENT_SIZE
 from services import cli
 from services.config import ConfigError, GmmapConfig, load_config
 from services.zenoh_config import DEFAULT_ENDPOINT
+from support.paths import ROOT
 
 
 def resolved(*argv: str) -> GmmapConfig:
@@ -27,6 +29,21 @@ def test_defaults_are_the_sections_own():
     assert config.server.listen == (DEFAULT_ENDPOINT,) and config.agent.zenoh_connect == (DEFAULT_ENDPOINT,)
     # A server that connects to a router need not listen.
     assert dataclasses.replace(config.server, zenoh_connect=("tcp/127.0.0.1:1",)).listen == ()
+
+
+def test_the_readme_example_file_runs_as_the_defaults(tmp_path):
+    """Copied as it is, README's example changes nothing; its commented-out values are valid too."""
+    section = (ROOT / "README.md").read_text().split("## Configuration", 1)[1]
+    example = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "gmmap.toml"
+    path.write_text(example)
+    config, defaults = load_config(path), GmmapConfig()
+    for dim in (2, 3):
+        assert config.fit.for_dimension(dim) == defaults.fit.for_dimension(dim)
+    assert config.reconstruction == defaults.reconstruction
+    assert (config.server.listen, config.server.data_dir) == (defaults.server.listen, defaults.server.data_dir)
+    path.write_text(re.sub("^# ", "", example, flags=re.MULTILINE))
+    assert load_config(path).fit.points_per_component is not None
 
 
 def test_the_3d_component_size_rule_has_one_home():
