@@ -92,7 +92,7 @@ def reconstruct(
     grid: Grid,
     scans: Iterable[tuple[ScanModel, Pose, int]],
     *,
-    samples_per_cell: float = 1.0,
+    samples_per_cell: float = ReconstructionConfig.samples_per_cell,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expected hit and miss counts (float32) on `grid` from (scan model, world pose, seed) triples.

@@ -7,7 +7,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from gmm_core import FitConfig, Grid, Mixture, Pose, ScanModel, fit_scan
-from gmm_core.reconstruct import count_beams, reconstruct
+from gmm_core.reconstruct import ReconstructionConfig, count_beams, reconstruct
 from gmm_core.sampling import Z_MAX, draw, mixture_samples, samples_per_component, scan_rays, scan_seed
 
 
@@ -59,6 +59,15 @@ def test_reposing_moves_the_map_exactly():
     h1, m1 = reconstruct(grid, [(model, Pose.from_xytheta(1.0, 0.0, 0.0), 5)])
     assert np.allclose(h1[:, 10:], h0[:, :-10], atol=1e-4)
     assert np.allclose(m1[:, 12:-1], m0[:, 2:-11], atol=1e-4)
+
+
+def test_the_default_samples_per_cell_is_the_reconstruction_sections():
+    model = fit_scan(*wall_scan())
+    grid = Grid.from_bbox([-1.0, -3.0], [7.0, 3.0], 0.1)
+    scans = [(model, Pose.identity(2), 5)]
+    configured = reconstruct(grid, scans, samples_per_cell=ReconstructionConfig().samples_per_cell)
+    for default, expected in zip(reconstruct(grid, scans), configured):
+        assert np.array_equal(default, expected)
 
 
 def test_raw_counting_grid():
