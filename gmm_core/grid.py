@@ -7,6 +7,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def _check_resolution(resolution: float) -> None:
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"grid: resolution must be positive, got {resolution}")
+
+
 @dataclass(frozen=True)
 class Grid:
     """A regular grid over an axis-aligned box. Cell centre = origin + (index + 0.5) * resolution.
@@ -26,8 +31,7 @@ class Grid:
             raise ValueError(f"grid: origin must have 2 or 3 values matching shape, got {origin.shape}, {shape}")
         if not np.isfinite(origin).all():
             raise ValueError("grid: origin is not finite")
-        if not (np.isfinite(self.resolution) and self.resolution > 0):
-            raise ValueError(f"grid: resolution must be positive, got {self.resolution}")
+        _check_resolution(self.resolution)
         if min(shape) < 1:
             raise ValueError(f"grid: shape must be at least 1 cell per axis, got {shape}")
         object.__setattr__(self, "origin", origin)
@@ -41,6 +45,7 @@ class Grid:
         hi = np.asarray(hi, dtype=np.float64)
         if lo.shape != hi.shape or not (hi > lo).all():
             raise ValueError(f"bbox: max corner must exceed min corner on every axis, got {lo} .. {hi}")
+        _check_resolution(resolution)  # before dividing by it: numpy would warn, then Grid refuse
         # A tolerance keeps an exact multiple (e.g. 10 m at 0.1 m) from gaining a sliver cell.
         shape = np.ceil((hi - lo) / resolution - 1e-9).astype(np.int64)
         return Grid(lo, resolution, tuple(np.maximum(shape, 1)))
