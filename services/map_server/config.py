@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from gmm_core.validation import require_count, require_number
 from protocol import check_id
-from services.zenoh_config import DEFAULT_ENDPOINT
+from services.zenoh_config import DEFAULT_ENDPOINT, check_endpoints
 
 SYNCHRONOUS = ("normal", "full")  # SQLite fsync policies: crash of the process / also power loss
 HTTP_SECURITY_FLAGS = "--http-tls-cert CERT.pem --http-tls-key KEY.pem --http-tokens FILE"
@@ -81,6 +81,8 @@ class ServerConfig:
             require_count("server.trace_threads", self.trace_threads)
         if self.busy_samples_per_cell is not None:
             require_number("server.busy_samples_per_cell", self.busy_samples_per_cell, positive=False)
+        check_endpoints("server.zenoh_listen", self.zenoh_listen or ())
+        check_endpoints("server.zenoh_connect", self.zenoh_connect)
         if not self.listen and not self.zenoh_connect:
             raise ValueError("server.zenoh_listen: a server needs an endpoint to listen on or to connect to")
 

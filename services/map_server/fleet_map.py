@@ -20,6 +20,7 @@ import numpy as np
 from gmm_core import Grid, Pose, ScanModel
 from gmm_core.analytic.components import NodeComponents
 from gmm_core.occupancy import DEFAULT_PRIOR
+from gmm_core.reconstruct import ReconstructionConfig
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
 from services.host import cpu_cores
@@ -42,7 +43,7 @@ class FleetMap:
         self,
         fleet: str,
         *,
-        samples_per_cell: float = 4.0,
+        samples_per_cell: float = ReconstructionConfig.samples_per_cell,
         prior: float = DEFAULT_PRIOR,
         trace_threads: int | None = None,
         busy_samples_per_cell: float | Mapping[int, float] | None = None,

@@ -98,6 +98,8 @@ def test_cli_flags_reach_their_sections():
         ({"reconstruction": {"prior": 0.0}}, "reconstruction.prior"),
         ({"server": {"synchronous": "sometimes"}}, "server.synchronous"),
         ({"server": {"zenoh_listen": [], "zenoh_connect": []}}, "server.zenoh_listen"),
+        ({"server": {"zenoh_listen": ["notanendpoint"]}}, "server.zenoh_listen"),
+        ({"server": {"zenoh_connect": ["tcp/127.0.0.1:port"]}}, "server.zenoh_connect"),
         ({"agent": {"robot": "not a robot id"}}, "agent.robot"),
         ({"agent": {"encoding": "json"}}, "agent.encoding"),
         ({"sim": {"robots": 0}}, "sim.robots"),
