@@ -36,6 +36,16 @@ def _floats(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0:  # NaN too
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
 def _progress_bars():
     from tqdm import tqdm
 
@@ -526,7 +536,10 @@ def build_parser() -> argparse.ArgumentParser:
         "demo", help="a map server and three simulated robots in the office; the viewer shows the map grow"
     )
     p.add_argument(
-        "--duration", type=float, default=0.0, help="seconds the robots drive, then everything stops; 0: until Ctrl-C"
+        "--duration",
+        type=_seconds,
+        default=0.0,
+        help="seconds the robots drive, then everything stops; 0: until Ctrl-C",
     )
     server_http_flags(p)  # where the viewer is served, and how it is secured
     http_client_flags(p)  # the demo's own progress reads

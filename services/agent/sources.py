@@ -60,9 +60,14 @@ def parse_slice(text: str | None) -> slice:
     try:
         if not sep:
             raise ValueError
-        return slice(int(start) if start else None, int(stop) if stop else None)
+        chosen = slice(int(start) if start else None, int(stop) if stop else None)
     except ValueError:
         raise ValueError(f"--scans must be A:B with integers, got {text!r}") from None
+    # A and B of one sign count from the same end: B at or before A selects nothing
+    if chosen.start is not None and chosen.stop is not None and (chosen.start < 0) == (chosen.stop < 0):
+        if chosen.stop <= chosen.start:
+            raise ValueError(f"--scans {text!r} selects no scans: B must come after A")
+    return chosen
 
 
 def is_simulated(source: str) -> bool:

@@ -40,3 +40,10 @@ def test_a_list_after_a_flag_that_takes_none_is_still_refused(capsys):
     with pytest.raises(SystemExit):
         parsed("inspect", "scans.xyz", "--json", "-1,2")
     assert "--json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("duration", ["-5", "nan", "soon"])
+def test_demo_refuses_a_duration_below_zero(duration, capsys):
+    with pytest.raises(SystemExit) as stop:
+        parsed("demo", "--duration", duration)
+    assert stop.value.code == 2 and "expected seconds >= 0" in capsys.readouterr().err

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gmm_core import Pose
-from services.agent.sources import FixedCorrections, Node, RelaxingCorrections, load_nodes, parse_source
+from services.agent.sources import FixedCorrections, Node, RelaxingCorrections, load_nodes, parse_slice, parse_source
 
 
 def node(k: int, error: float) -> Node:
@@ -55,3 +55,11 @@ def test_a_source_is_a_known_kind_a_path_with_colons_or_named_as_an_unknown_kind
         load_nodes("foo:/dir")
     with pytest.raises(FileNotFoundError, match="no such file or directory"):  # a path, not a kind
         load_nodes(str(tmp_path / "gone:1.xyz"))
+
+
+def test_scans_a_to_b_must_select_some():
+    assert parse_slice("2:5") == slice(2, 5) and parse_slice("-10:") == slice(-10, None)
+    assert parse_slice("3:-1") == slice(3, -1)  # from either end: the log's length decides
+    for empty in ("10:5", "4:4", "-2:-5"):
+        with pytest.raises(ValueError, match="selects no scans"):
+            parse_slice(empty)
