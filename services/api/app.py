@@ -213,6 +213,9 @@ def create_app(
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError):
         first = exc.errors()[0] if exc.errors() else {}
+        if first.get("type") == "json_invalid":  # FastAPI's loc is ("body", the character where parsing stopped)
+            where = f"{first['ctx']['error']} at character {first['loc'][-1]}"
+            return error(400, None, f"the body is not valid JSON: {where}")
         loc = [str(p) for p in first.get("loc", ()) if p not in ("query", "path", "body")]
         return error(422, ".".join(loc) or None, first.get("msg", "invalid request"))
 

@@ -26,7 +26,7 @@ from services.map_server.state import ServerState
 from services.map_server.tracers import TracerLoad, TracersSaturated
 from services.render import occupancy_png, probability_png
 from support.browser import CENTRE, FREE_GREY, clicked, headless_chromium, screenshot
-from support.net import get, post
+from support.net import get, post, post_bytes
 from support.uvicorn_thread import Server
 
 BBOX = "-10,-20,10,5"  # around the start of the Intel run
@@ -235,6 +235,22 @@ def test_a_long_get_in_two_pieces_is_answered_as_in_one(server):
 def test_bad_points_by_post(server, payload, field):
     status, body = post(f"{server.url}/v1/occupancy/points", payload)
     assert status == 422 and json.loads(body)["field"] == field, body
+
+
+@pytest.mark.parametrize(
+    "body, why",
+    [
+        (b'{"points":[[0,0', "Expecting ',' delimiter at character 15"),
+        (
+            b'{"points": [[0, 0]], "resolution": 0.1,}',
+            "Expecting property name enclosed in double quotes at character 39",
+        ),
+        (b"\xff\xfe", "Expecting value at character 0"),  # not UTF-8
+    ],
+)
+def test_a_body_that_is_not_json_is_400_saying_where_it_breaks(server, body, why):
+    status, reply = post_bytes(f"{server.url}/v1/occupancy/points", body)
+    assert status == 400 and json.loads(reply) == {"detail": f"the body is not valid JSON: {why}", "field": None}
 
 
 def test_too_many_points_by_post(server, fleet_map):

@@ -38,7 +38,12 @@ def get(url: str):
 
 def post(url: str, payload) -> tuple[int, bytes]:
     """(status, body) of a JSON POST, 4xx and 5xx included."""
-    request = urllib.request.Request(url, json.dumps(payload).encode(), {"Content-Type": "application/json"})
+    return post_bytes(url, json.dumps(payload).encode())
+
+
+def post_bytes(url: str, body: bytes) -> tuple[int, bytes]:
+    """(status, body) of a POST of `body` as application/json, whatever it holds; 4xx and 5xx included."""
+    request = urllib.request.Request(url, body, {"Content-Type": "application/json"})
     try:
         with urllib.request.urlopen(request, timeout=60) as reply:
             return reply.status, reply.read()
