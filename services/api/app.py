@@ -35,7 +35,7 @@ from services.export.pgm import pgm_bytes
 from services.export.ply import ply_bytes
 from services.map_server.tiles import MAX_STALE_S, PATIENCE_S
 from services.map_server.tokens import TokenFile
-from services.map_server.tracers import TracersSaturated
+from services.map_server.tracers import TracersSaturated, TracingStopped
 from services.render import occupancy_png, probability_png, top_down_classes
 
 from . import params
@@ -139,6 +139,13 @@ ERRORS = {
         (422, "A parameter is missing, malformed or over a limit; `field` names it"),
     )
 }
+STOPPING = {
+    503: {
+        "model": BusyBody,
+        "description": "The server is stopping (`reason` server_stopping): the request's trace was cut off; "
+        "ask again after Retry-After seconds",
+    }
+}
 AUTH_ERRORS = {
     status: {"model": ErrorBody, "description": text}
     for status, text in (
@@ -162,6 +169,12 @@ def error(status: int, field: str | None, message: str, headers=None) -> JSONRes
     return JSONResponse(
         {"detail": f"{field}: {message}" if field else message, "field": field}, status_code=status, headers=headers
     )
+
+
+def busy(refusal: TracersSaturated | TracingStopped) -> JSONResponse:
+    """503 with BusyBody: the tracers would not take the request's trace, or were closed under it."""
+    body = {"detail": str(refusal), "field": None, "reason": refusal.reason, "retry_after": refusal.retry_after}
+    return JSONResponse(body, status_code=503, headers={"Retry-After": str(refusal.retry_after)})
 
 
 def create_app(
@@ -226,6 +239,10 @@ def create_app(
             headers = {"Allow": ", ".join(sorted(allowed_methods(app, request.scope)))}
         return error(exc.status_code, None, str(exc.detail), headers)
 
+    @app.exception_handler(TracingStopped)
+    async def stopping(request: Request, exc: TracingStopped):
+        return busy(exc)  # a handled exception: no traceback in the log, unlike those of internal_error
+
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception):
         return error(500, None, f"internal error: {type(exc).__name__}")
@@ -236,10 +253,9 @@ def create_app(
         except ValueError as e:  # the map's own checks (a dimension that changed meanwhile)
             raise ApiError("bbox", str(e)) from None
 
-    def shed(busy: TracersSaturated) -> JSONResponse:
+    def shed(saturated: TracersSaturated) -> JSONResponse:
         state.metrics.tile_answers.labels("shed").inc()
-        body = {"detail": str(busy), "field": None, "reason": busy.reason, "retry_after": busy.retry_after}
-        return JSONResponse(body, status_code=503, headers={"Retry-After": str(busy.retry_after)})
+        return busy(saturated)
 
     # -- occupancy ------------------------------------------------------------------------
     @app.get(
@@ -263,8 +279,9 @@ def create_app(
             },
             503: {
                 "model": BusyBody,
-                "description": "The tracers are saturated and the tile has no state recent enough to serve: "
-                "nothing was queued; ask again after Retry-After seconds",
+                "description": "The tracers are saturated and the tile has no state recent enough to serve "
+                "(`reason` tracers_saturated: nothing was queued), or the server is stopping (server_stopping); "
+                "ask again after Retry-After seconds",
             },
         },
     )
@@ -335,8 +352,8 @@ def create_app(
             picture = (format, sigma2) if format in EXPORTS else None
         try:
             answer = occupancy_of(grid, selected, max_age)
-        except TracersSaturated as busy:
-            return shed(busy)
+        except TracersSaturated as saturated:
+            return shed(saturated)
         prob = answer.prob
         reply = (
             format,
@@ -386,7 +403,9 @@ def create_app(
         state.metrics.query_seconds.observe(time.perf_counter() - start)
         return {"resolution": res, "points": pts.tolist(), "probabilities": prob.tolist(), "method": method}
 
-    @app.get("/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point")
+    @app.get(
+        "/v1/occupancy/points", summary="Occupancy of the cell of size R centred on each point", responses=STOPPING
+    )
     def occupancy_points(
         xy: str | None = Query(
             None, description="x1,y1,x2,y2,... (2D maps)", json_schema_extra={"pattern": params.NUMBERS_PATTERN}
@@ -415,7 +434,9 @@ def create_app(
         pts = params.points(params.numbers(text, field), d, field)
         return points_reply(pts, res, who.select(params.robots(robots)), field, method)
 
-    @app.post("/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)")
+    @app.post(
+        "/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)", responses=STOPPING
+    )
     def occupancy_points_post(body: PointsBody, who: Access = Depends(access)) -> dict:
         res = params.resolution(body.resolution)
         d = len(body.points[0]) if body.points else 0

@@ -38,7 +38,14 @@ from .trace_workers import Traced, TraceWorker, WorkerGone, trace_nodes
 
 
 class TracingStopped(RuntimeError):
-    """A trace cut off because its pool was closed."""
+    """A trace cut off, or refused, because its pool was closed: the server is stopping. `retry_after`:
+    the seconds a client waits before it asks again (a restarted server answers once it listens)."""
+
+    reason = "server_stopping"
+    retry_after = 1
+
+    def __init__(self):
+        super().__init__("the map server is stopping")
 
 
 # A trace is split into parts of at most PART_NODES nodes. A background trace runs its parts on at most
@@ -163,16 +170,16 @@ class TracerPool:
     def close(self) -> None:
         """Stop tracing: queued traces are cancelled, running ones end at their next node, so a
         server stops in moments however large the tiles it was asked for (their requests fail)."""
-        self._closed = True
-        self._ingest_idle.set()  # a tracer held for ingest sees `_closed` at once
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        with self._count_lock:
+        with self._count_lock:  # as `_submit` checks it: no part is queued after this
+            self._closed = True
+            self._pool.shutdown(wait=False, cancel_futures=True)
             workers, self._workers = self._workers, []
             waiting = [part for parts in self._parts for part in parts]
             for parts in self._parts:
                 parts.clear()
+        self._ingest_idle.set()  # a tracer held for ingest sees `_closed` at once
         for _, _, _, future in waiting:  # their traces fail as the running ones do
-            future.set_exception(TracingStopped("the map server is stopping"))
+            future.set_exception(TracingStopped())
         for worker in workers:  # a thread waiting on one gets WorkerGone, raised as TracingStopped
             worker.close()
 
@@ -204,11 +211,14 @@ class TracerPool:
             misses += m
 
     def _submit(self, grid: Grid, entries: list[tuple[float, Posed]], background: bool) -> Future:
-        """Queue a part; a pool thread takes the next part due when it is free (`_next_part`)."""
+        """Queue a part; a pool thread takes the next part due when it is free (`_next_part`).
+        TracingStopped once the pool is closed."""
         future: Future = Future()
         with self._count_lock:
+            if self._closed:
+                raise TracingStopped()
             self._parts[1 if background else 0].append((time.monotonic(), grid, entries, future))
-        self._pool.submit(self._next_part)
+            self._pool.submit(self._next_part)
         return future
 
     def _next_part(self) -> None:
@@ -245,7 +255,7 @@ class TracerPool:
             return worker.trace(grid, nodes)
         except WorkerGone:
             if self._closed:
-                raise TracingStopped("the map server is stopping") from None
+                raise TracingStopped() from None
             self._forget(worker)  # it died: this thread starts another for its next part
             raise
 
@@ -253,7 +263,7 @@ class TracerPool:
         """Wait while ingest runs a batch; TracingStopped once the pool is closed."""
         self._ingest_idle.wait()
         if self._closed:
-            raise TracingStopped("the map server is stopping")
+            raise TracingStopped()
 
     def _forget(self, worker: TraceWorker) -> None:
         self._local.worker = None
@@ -272,5 +282,5 @@ class TracerPool:
                 self._workers.append(worker)
             if self._closed:  # closed while it started: close() may have missed it
                 worker.close()
-                raise TracingStopped("the map server is stopping")
+                raise TracingStopped()
         return worker

@@ -4,8 +4,10 @@ tracers are saturated, and what /metrics says of both. Real uvicorn on 127.0.0.1
 from __future__ import annotations
 
 import json
+import logging
 import time
 import urllib.request
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -17,8 +19,8 @@ from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
 from services.map_server.tiles import MAX_STALE_S
 from services.map_server.warmup import warm_kernels
-from support.net import get
-from support.saturation import saturated_tracers
+from support.net import get, post, wait_for
+from support.saturation import held_traces, saturated_tracers
 from support.uvicorn_thread import Server
 
 ORIGIN = "http://viewer.example"
@@ -115,6 +117,34 @@ def test_saturated_tracers_shed_with_503_and_retry_after_then_serve_again(server
     assert metric(server, 'gmmap_tile_answers_total{kind="updated"}') == 1
     assert metric(server, "gmmap_tracer_queue_depth") == 0
     assert metric(server, "gmmap_cache_misses_total") == 4  # the three queued tiles, and this one
+
+
+def test_requests_whose_traces_a_stop_cuts_off_are_503_with_retry_after_and_log_no_traceback(
+    server, monkeypatch, caplog
+):
+    """A stopping server closes its map before its HTTP server (server.py): a request tracing then,
+    one queued behind it and one that comes after are answered 503, not 500 with a traceback."""
+    uvicorn_log = logging.getLogger("uvicorn.error")  # uvicorn's logger: it does not propagate to caplog's
+    uvicorn_log.addHandler(caplog.handler)
+    tile = f"{server.url}/v1/occupancy?bbox=-6,-10,2,-2&resolution=0.15"
+    points = {"points": [[0.0, 0.0], [1.0, 1.0]], "resolution": 0.1, "method": "mc"}
+    try:
+        with ThreadPoolExecutor(2) as requests:
+            with held_traces(monkeypatch) as held:
+                tracing = requests.submit(get, tile)
+                wait_for(lambda: held, 20, "the tile's trace")
+                queued = requests.submit(post, f"{server.url}/v1/occupancy/points", points)
+                wait_for(lambda: server.fleet_map.cache_stats()["trace_queued"] == 1, 20, "the points' trace")
+                server.fleet_map.close()
+            tile_answers = [tracing.result(), get(tile.replace("0.15", "0.2"))]
+            points_answer = queued.result()
+    finally:
+        uvicorn_log.removeHandler(caplog.handler)
+    stopping = {"detail": "the map server is stopping", "field": None, "reason": "server_stopping", "retry_after": 1}
+    for status, headers, body in tile_answers:
+        assert (status, headers["Retry-After"], json.loads(body)) == (503, "1", stopping)
+    assert (points_answer[0], json.loads(points_answer[1])) == (503, stopping)
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
 
 
 def test_the_age_and_retry_headers_are_exposed_to_a_viewer_on_another_origin(server):
