@@ -12,7 +12,7 @@ import ssl
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
 
@@ -39,7 +39,7 @@ from services.api.points import evaluate
 from services.config import summary
 from services.host import release_free_memory
 from services.ros2.config import Ros2Config
-from services.stopping import StopSignal
+from services.stopping import POLL_S, StopSignal
 from services.zenoh_config import zenoh_config
 
 from .collector import freeze_survivors
@@ -235,6 +235,26 @@ def http_banner(options: ServerConfig, tokens) -> str:
     return f"{scheme}://{options.http} ({who})"
 
 
+def warm_up(stop: StopSignal) -> float | None:
+    """The seconds warm_kernels took, or None when a stop came first. It runs in a thread of its own
+    while this one watches `stop`: on an empty numba cache it compiles for about a minute, and with
+    nothing opened yet a stop need not wait for it (cmd_server ends the process without joining
+    the thread). In the main thread, it kept a stop waiting until STOP_DEADLINE_S ended the process."""
+    warming: Future = Future()
+
+    def run() -> None:
+        try:
+            warming.set_result(warm_kernels())
+        except BaseException as error:  # raised by the caller
+            warming.set_exception(error)
+
+    threading.Thread(target=run, name="gmmap-warm-up", daemon=True).start()
+    while not warming.done():
+        if stop.wait(POLL_S):
+            return None
+    return warming.result()
+
+
 def run_server(
     options: ServerConfig, reconstruction: ReconstructionConfig = ReconstructionConfig(), ros2: Ros2Config | None = None
 ) -> int:
@@ -252,7 +272,10 @@ def run_server(
         print(f"gmmap server: WARNING {exposure}", file=sys.stderr, flush=True)
     stop = StopSignal()
     stop.exit_if_stuck(STOP_DEADLINE_S, "gmmap server")
-    warm_s = warm_kernels()  # before anything arrives: the first scans and tiles do not wait for numba
+    warm_s = warm_up(stop)  # before anything arrives: the first scans and tiles do not wait for numba
+    if warm_s is None:
+        print("gmmap server: stopped while loading its kernels", file=sys.stderr, flush=True)
+        return 0
 
     store = Store(options.data_dir, synchronous=options.synchronous)
     fleet_map = FleetMap(

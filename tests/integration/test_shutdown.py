@@ -80,6 +80,34 @@ def test_a_signal_under_ingest_and_tile_load_ends_the_server_within_five_seconds
         assert stored_nodes(data, "a")  # it stored some before it stopped
 
 
+def test_a_signal_during_the_kernel_warm_up_ends_the_server_within_five_seconds(procs, tmp_path):
+    """On an empty numba cache the start's warm-up compiles for about a minute (a fresh install):
+    a stop meanwhile ends the server at once, with nothing opened, not after the compiler."""
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    server = procs.start(
+        "server",
+        *(
+            "server",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--http",
+            f"127.0.0.1:{hport}",
+            "--data-dir",
+            str(data),
+        ),
+        env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")},  # empty: every kernel compiles
+    )
+    procs.wait_ready("server", "gmmap server config")  # printed just before the warm-up
+    time.sleep(1.0)  # compiling by now
+    started = time.monotonic()
+    server.send_signal(signal.SIGTERM)
+    code = server.wait(30)
+    took = time.monotonic() - started
+    log = procs.log(server)
+    assert code == 0 and took < 5, (code, took, log[-2000:])
+    assert "stopped while loading its kernels" in log and not data.exists(), log[-2000:]
+
+
 def sys_is_linux() -> bool:
     return os.uname().sysname == "Linux"
 
