@@ -95,6 +95,7 @@ def _range(lo: float, hi: float) -> dict:
 
 
 Method = Literal["auto", "analytic", "mc"]  # of /v1/occupancy/points: services/api/points.py
+ROBOTS_DESCRIPTION = "comma-separated robot ids; every robot when absent; 404 for one the fleet has had nothing from"
 METHOD_DESCRIPTION = (
     "mc: Monte-Carlo grids; analytic: the expected evidence at each point's cell (Eq. 3-10), per "
     "point; auto: analytic where it is cheaper (few scattered points), else mc"
@@ -112,7 +113,7 @@ class PointsBody(BaseModel):
         }
     )
     resolution: float = Field(**_range(params.MIN_RESOLUTION, params.MAX_RESOLUTION))
-    robots: list[str] | None = Field(None, json_schema_extra={"items": {"pattern": params.ID_PATTERN}})
+    robots: list[str] | None = Field(None, json_schema_extra={"minItems": 1, "items": {"pattern": params.ID_PATTERN}})
     method: Method = "auto"
 
 
@@ -247,6 +248,18 @@ def create_app(
     async def internal_error(request: Request, exc: Exception):
         return error(500, None, f"internal error: {type(exc).__name__}")
 
+    def selection(who: Access, names: str | list[str] | None) -> tuple[str, ...] | None:
+        """The robots a request reads (params.robots, then Access.select: 403 before 404, so a limited
+        token learns nothing of other robots); those it names must be some, and of the fleet."""
+        selected = who.select(params.robots(names))
+        if names is None:
+            return selected  # a limited token's robots may not have sent anything yet
+        if not selected:
+            raise ApiError("robots", "name at least one robot, or leave robots out to read every robot")
+        if unknown := fmap.unknown_robots(selected):
+            raise ApiError("robots", f"no robot {', '.join(unknown)} in fleet {state.fleet!r}", status=404)
+        return selected
+
     def occupancy_of(grid, robots, max_age: float = MAX_STALE_S):
         try:
             return fmap.occupancy_answer(grid, robots, may_shed=True, max_age=max_age, patience=PATIENCE_S)
@@ -300,7 +313,7 @@ def create_app(
         format: Format = Query(Format.npy, description="npy, png, msgpack, pgm, bt (3D), ot (3D) or ply"),
         robots: str | None = Query(
             None,
-            description="comma-separated robot ids; every robot when absent",
+            description=ROBOTS_DESCRIPTION,
             json_schema_extra={"pattern": params.ROBOTS_PATTERN},
         ),
         shade: Shade = Query(
@@ -344,7 +357,7 @@ def create_app(
                 raise ApiError("format", NOT_3D.format(fmt=format.value, dim=grid.dim))
             if problem := reach_problem(grid):
                 raise ApiError("bbox", problem)
-        selected = who.select(params.robots(robots))  # the reply's key below: per client's robots
+        selected = selection(who, robots)  # the reply's key below: per client's robots
         sigma2 = params.variance(variance)
         if format is Format.png:
             picture = (shade, sigma2 if shade is Shade.classes else None)
@@ -418,7 +431,7 @@ def create_app(
         ),
         robots: str | None = Query(
             None,
-            description="comma-separated robot ids; every robot when absent",
+            description=ROBOTS_DESCRIPTION,
             json_schema_extra={"pattern": params.ROBOTS_PATTERN},
         ),
         method: Method = Query("auto", description=METHOD_DESCRIPTION),
@@ -432,7 +445,7 @@ def create_app(
             raise ApiError(field, f"at most {params.MAX_POINTS:,} points per request")
         params.check_dimension(d, fmap.dim, field)
         pts = params.points(params.numbers(text, field), d, field)
-        return points_reply(pts, res, who.select(params.robots(robots)), field, method)
+        return points_reply(pts, res, selection(who, robots), field, method)
 
     @app.post(
         "/v1/occupancy/points", summary="Occupancy at points given in a JSON body (for long lists)", responses=STOPPING
@@ -444,7 +457,7 @@ def create_app(
             raise ApiError("points", "must be a non-empty list of [x, y] or [x, y, z]")
         params.check_dimension(d, fmap.dim, "points")
         pts = params.points(body.points, d, "points")
-        return points_reply(pts, res, who.select(params.robots(body.robots)), "points", body.method)
+        return points_reply(pts, res, selection(who, body.robots), "points", body.method)
 
     # -- robots and the map -----------------------------------------------------------------
     @app.get("/v1/robots", summary="Every robot of the fleet")
@@ -457,7 +470,7 @@ def create_app(
     ) -> list[list[float]]:
         name = params.robot(robot)
         who.select((name,), "robot")  # 403 before 404: a limited token learns nothing of other robots
-        if not any(r["robot"] == name for r in fmap.robots()):
+        if fmap.unknown_robots((name,)):
             raise ApiError("robot", f"no robot {name!r} in fleet {state.fleet!r}", status=404)
         return fmap.trajectory(name).tolist()
 

@@ -30,7 +30,7 @@ _B = r"[ \t]*"
 NUMBERS_PATTERN = rf"^{_B}{NUMBER}{_B}(?:,{_B}{NUMBER}{_B})*$"
 BBOX_PATTERN = rf"^{_B}{NUMBER}{_B}(?:,{_B}{NUMBER}{_B}){{3}}(?:(?:,{_B}{NUMBER}{_B}){{2}})?$"
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
-ROBOTS_PATTERN = rf"^{_B}(?:[A-Za-z0-9_-]{{1,64}}{_B})?(?:,{_B}(?:[A-Za-z0-9_-]{{1,64}}{_B})?)*$"
+ROBOTS_PATTERN = rf"^{_B}[A-Za-z0-9_-]{{1,64}}{_B}(?:,{_B}[A-Za-z0-9_-]{{1,64}}{_B})*$"  # no empty name
 _NUMBER = re.compile(rf"{_B}{NUMBER}{_B}")
 _NON_FINITE = re.compile(rf"{_B}[-+]?(?:nan|inf|infinity){_B}", re.IGNORECASE)  # parsed, to say "finite"
 _ROBOTS = re.compile(ROBOTS_PATTERN)
@@ -101,12 +101,13 @@ def grid(lo: np.ndarray, hi: np.ndarray, res: float) -> Grid:
 
 
 def robots(selection: str | list[str] | None) -> tuple[str, ...] | None:
-    """None (every robot), or ids as a comma-separated string or a list; an empty one selects none."""
+    """None (every robot), or ids as a comma-separated string (none of them empty) or a list; an
+    empty list selects none."""
     if selection is None:
         return None
     if isinstance(selection, str) and not _ROBOTS.fullmatch(selection):
         raise ApiError("robots", f"must be comma-separated ids matching [A-Za-z0-9_-]{{1,64}}, got {selection!r:.80}")
-    names = [n.strip() for n in selection.split(",") if n.strip()] if isinstance(selection, str) else selection
+    names = [n.strip() for n in selection.split(",")] if isinstance(selection, str) else selection
     try:
         return tuple(sorted({check_id(n, "robots") for n in names}))
     except ProtocolError as e:

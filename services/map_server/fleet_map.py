@@ -163,6 +163,11 @@ class FleetMap:
         with self._lock:
             return self._nodes.robot_rows()
 
+    def unknown_robots(self, robots: Collection[str]) -> list[str]:
+        """Those of `robots` the map has had nothing from (no scan, no pose graph), sorted."""
+        with self._lock:
+            return sorted(set(robots) - self._nodes.robots.keys())
+
     def trajectory(self, robot: str) -> np.ndarray:
         """World positions of the robot's sensor origins, in node order."""
         with self._lock:

@@ -145,9 +145,25 @@ def test_robot_selection(server, fleet_map):
     url = f"{server.url}/v1/occupancy?bbox=-2,-2,2,2&resolution=0.1"
     mine = np.load(io.BytesIO(get(url + "&robots=r1")[2]))
     assert np.array_equal(mine, np.load(io.BytesIO(get(url)[2])))
-    for robots in ("nobody", "nobody,other", ""):
-        status, _, body = get(url + f"&robots={robots}")
-        assert status == 200 and (np.load(io.BytesIO(body)) == 0.5).all()
+
+
+def test_naming_a_robot_the_fleet_lacks_is_404_and_an_empty_name_422_not_a_blank_map(server, fleet_map):
+    tile = f"{server.url}/v1/occupancy?bbox=-2,-2,2,2&resolution=0.1&robots="
+    points = f"{server.url}/v1/occupancy/points?xy=0,0&resolution=0.1&robots="
+    before = fleet_map.cache_stats()
+    for robots, unknown in (("nobody", "nobody"), ("r1,other,nobody", "nobody, other")):
+        missing = {"detail": f"robots: no robot {unknown} in fleet 'test'", "field": "robots"}
+        for status, body in (get(tile + robots)[::2], get(points + robots)[::2]):
+            assert (status, json.loads(body)) == (404, missing)
+        asked = {"points": [[0.0, 0.0]], "resolution": 0.1, "robots": robots.split(",")}
+        status, body = post(f"{server.url}/v1/occupancy/points", asked)
+        assert (status, json.loads(body)) == (404, missing)
+    for robots in ("", "r1,,r1", "r1,"):
+        for status, body in (get(tile + robots)[::2], get(points + robots)[::2]):
+            assert status == 422 and json.loads(body)["field"] == "robots", (robots, body)
+    status, body = post(f"{server.url}/v1/occupancy/points", {"points": [[0.0, 0.0]], "resolution": 0.1, "robots": []})
+    assert status == 422 and json.loads(body)["field"] == "robots", body
+    assert fleet_map.cache_stats() == before  # refused before any work
 
 
 def test_empty_map_is_unknown(empty_server):

@@ -311,3 +311,14 @@ def test_a_correction_that_arrives_before_its_scan_is_held(fitted):
     fleet.apply_poses(PoseGraphUpdate("f", "r1", 3, ((s.index, s.pose),)))
     fleet.add_scan(ScanMessage("f", "r1", s.index, s.stamp, m, drifted(s.pose, 50)))
     assert np.allclose(fleet.trajectory("r1")[0], s.pose.t)
+
+
+def test_unknown_robots_are_those_the_map_has_had_nothing_from(fitted):
+    """What the HTTP API answers 404 for: a scan or a pose graph makes a robot known."""
+    scans, models = fitted
+    s, m = scans[0], models[0]
+    fleet = FleetMap("f")
+    fleet.add_scan(ScanMessage("f", "a", s.index, s.stamp, m, s.pose))
+    fleet.apply_poses(PoseGraphUpdate("f", "b", 1, ((s.index, s.pose),)))
+    assert fleet.unknown_robots(["nobody", "b", "a", "c"]) == ["c", "nobody"]
+    assert fleet.unknown_robots([]) == []
