@@ -80,12 +80,13 @@ def _lower_priority() -> None:
 
 @dataclass(frozen=True)
 class TracerLoad:
-    """The pool at one moment: parts waiting for a thread, parts being traced, the estimated wait."""
+    """The pool at one moment: parts waiting for a thread, parts being traced, the estimated wait
+    (None until a part has been timed: it was 0 then, and the queue's count alone bounds it)."""
 
     threads: int
     queued: int
     running: int
-    wait_s: float
+    wait_s: float | None
 
     @property
     def idle(self) -> bool:
@@ -99,21 +100,23 @@ class TracerLoad:
 
     @property
     def saturated(self) -> bool:
-        return self.queued >= SATURATED_QUEUE_PER_THREAD * self.threads or self.wait_s >= SATURATED_WAIT_S
+        waits_long = self.wait_s is not None and self.wait_s >= SATURATED_WAIT_S
+        return self.queued >= SATURATED_QUEUE_PER_THREAD * self.threads or waits_long
 
 
 class TracersSaturated(RuntimeError):
     """A request refused without queueing work: the tracers' queue is over its bound.
-    `retry_after` is the estimated wait in whole seconds, at least 1."""
+    `retry_after` is the estimated wait in whole seconds, at least 1 (1 while it is unknown)."""
 
     reason = "tracers_saturated"
 
     def __init__(self, load: TracerLoad):
         self.load = load
-        self.retry_after = max(1, math.ceil(load.wait_s))
+        self.retry_after = max(1, math.ceil(load.wait_s or 0.0))
+        work = "no part timed yet" if load.wait_s is None else f"about {load.wait_s:.1f} s of work"
+        threads = f"{load.threads} tracer thread{'s' if load.threads != 1 else ''}"
         super().__init__(
-            f"tracers saturated: {load.queued} traces queued for {load.threads} tracer threads "
-            f"(about {load.wait_s:.1f} s of work); retry after {self.retry_after} s"
+            f"tracers saturated: {load.queued} traces queued for {threads} ({work}); retry after {self.retry_after} s"
         )
 
 
@@ -164,8 +167,8 @@ class TracerPool:
 
     def load(self) -> TracerLoad:
         with self._count_lock:
-            queued, running = self._queued, self._running
-            return TracerLoad(self.threads, queued, running, queued * (self._part_seconds or 0.0) / self.threads)
+            queued, running, part_s = self._queued, self._running, self._part_seconds
+        return TracerLoad(self.threads, queued, running, None if part_s is None else queued * part_s / self.threads)
 
     def close(self) -> None:
         """Stop tracing: queued traces are cancelled, running ones end at their next node, so a

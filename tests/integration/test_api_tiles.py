@@ -107,7 +107,7 @@ def test_saturated_tracers_shed_with_503_and_retry_after_then_serve_again(server
         assert int(headers["Retry-After"]) >= 1
         reply = json.loads(body)
         assert reply["reason"] == "tracers_saturated" and reply["field"] is None
-        assert reply["detail"].startswith("tracers saturated: 2 traces queued for 1 tracer thread")
+        assert reply["detail"].startswith("tracers saturated: 2 traces queued for 1 tracer thread (no part timed")
         assert reply["retry_after"] == int(headers["Retry-After"])
         assert "X-Map-Age" not in headers
         assert metric(server, "gmmap_tracer_queue_depth") == 2

@@ -12,7 +12,7 @@ import pytest
 
 from gmm_core import Grid
 from services.map_server import tracers
-from services.map_server.tracers import TRACER_NICE, TracerPool
+from services.map_server.tracers import TRACER_NICE, TracerPool, TracersSaturated
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="per-thread nice values are Linux's")
@@ -95,3 +95,44 @@ def test_a_trace_runs_parts_on_every_thread_a_background_one_on_all_but_one(monk
         pool.close()
     assert hits[0] == 4 * tracers.PART_NODES  # every part summed
     assert max(seen) == most
+
+
+def test_the_wait_of_a_queue_is_unknown_until_a_part_was_timed_then_estimated_from_the_parts_times(monkeypatch):
+    """A saturated fresh pool said "about 0.0 s of work": no part had finished, so none was timed."""
+    pool = TracerPool(1, samples=None)
+    gate = threading.Event()
+
+    def part(grid, entries):  # stands in for the kernel: waits at the gate
+        gate.wait(10)
+        return np.zeros(1), np.zeros(1)
+
+    def queue_three() -> list[threading.Thread]:
+        """One part traced and two queued behind it, each a trace of its own."""
+        calls = [threading.Thread(target=pool.trace, args=(grid, [n], [])) for n in range(3)]
+        for call in calls:
+            call.start()
+        deadline = time.monotonic() + 10
+        while pool.load().queued < 2 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        return calls
+
+    monkeypatch.setattr(pool, "_trace_part", part)
+    grid = Grid(np.zeros(2), 1.0, (1, 1))
+    try:
+        for timed in (False, True):
+            gate.clear()
+            calls = queue_three()
+            time.sleep(0.05)  # the traced part takes at least this
+            load = pool.load()
+            gate.set()
+            for call in calls:
+                call.join(10)
+            refusal = str(TracersSaturated(load))
+            assert (load.queued, load.running) == (2, 1)
+            if timed:  # queued parts x the running mean of part times (0.05 s and more, 0 s, 0 s) / threads
+                assert load.wait_s > 0.05 and f"about {load.wait_s:.1f} s of work" in refusal, refusal
+            else:
+                assert load.wait_s is None and "no part timed yet" in refusal, refusal
+            assert refusal.startswith("tracers saturated: 2 traces queued for 1 tracer thread (")
+    finally:
+        pool.close()
