@@ -1,18 +1,25 @@
-"""A cap on request bodies, enforced before the app reads them.
+"""Caps on requests, enforced before the app reads them.
 
 The only endpoint with a body is POST /v1/occupancy/points; without a cap, FastAPI would read and
 parse a body of any size before the point limit could say no. A declared Content-Length over
 the cap is answered at once; a chunked body is counted as it arrives and refused when it passes
 the cap. Both replies are 413 with the API's JSON error body.
+
+A request head (request line with its query string, and headers) is capped by uvicorn's h11
+parser, set to MAX_REQUEST_HEAD by the server; over it, or not HTTP at all, the request never
+reaches the app: `JsonErrorH11` gives uvicorn's 400 for it the API's JSON error body too.
 """
 
 from __future__ import annotations
 
 import json
 
+import h11
 from starlette.exceptions import HTTPException
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 MAX_BODY = 1 << 20  # bytes; 10,000 points in JSON take about 0.5 MB
+MAX_REQUEST_HEAD = 1 << 20  # bytes: holds the longest GET the API accepts (10,000 points)
 
 
 def _too_large(limit: int) -> HTTPException:
@@ -62,3 +69,20 @@ class BodyLimit:
             }
         )
         await send({"type": "http.response.body", "body": body})
+
+
+class JsonErrorH11(H11Protocol):
+    """uvicorn's h11 protocol (`uvicorn.Config(http=...)`), its 400 for a request h11 cannot parse
+    in the API's JSON error body rather than plain text."""
+
+    def send_400_response(self, msg: str) -> None:
+        why = f"{msg} (not HTTP, or a request head over {MAX_REQUEST_HEAD:,} bytes)"
+        body = json.dumps({"detail": why, "field": None}).encode()
+        headers = [
+            (b"content-type", b"application/json"),
+            (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close"),
+        ]
+        for event in (h11.Response(status_code=400, headers=headers), h11.Data(data=body), h11.EndOfMessage()):
+            self.transport.write(self.conn.send(event))
+        self.transport.close()

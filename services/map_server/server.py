@@ -54,7 +54,6 @@ from .warmup import warm_kernels
 
 log = logging.getLogger("gmmap.server")
 
-MAX_REQUEST_HEAD = 1 << 20  # bytes
 RELEASE_MEMORY_S = 10.0  # s between handing freed memory back to the OS (services.host.release_free_memory)
 # s from SIGTERM / SIGINT until a server that has not stopped exits anyway: what it acknowledged is
 # committed (SQLite, WAL), so ending mid-stop loses nothing acknowledged; it normally stops in 1-2 s.
@@ -199,6 +198,7 @@ def start_http(state: ServerState, options: ServerConfig, variance: float, token
     if given; (server, thread), or None when the API is absent."""
     try:
         from services.api.app import create_app
+        from services.api.limits import MAX_REQUEST_HEAD, JsonErrorH11
     except ImportError as error:
         log.warning("HTTP disabled: services.api.app is not available (%s)", error)
         return None
@@ -206,13 +206,14 @@ def start_http(state: ServerState, options: ServerConfig, variance: float, token
 
     host, port = split_address(options.http)
     # h11 refuses a request head (request line with its query string, and headers) over this size
-    # with a plain 400; 1 MiB holds the longest GET the API accepts (10,000 points).
+    # with a 400, JSON as the app's errors (services/api/limits.py).
     config = uvicorn.Config(
         create_app(state, default_variance=variance, tokens=tokens),
         host=host,
         port=port,
         log_level="warning",
         lifespan="on",
+        http=JsonErrorH11,
         h11_max_incomplete_event_size=MAX_REQUEST_HEAD,
         ssl_certfile=options.http_tls_cert,
         ssl_keyfile=options.http_tls_key,

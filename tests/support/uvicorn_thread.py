@@ -8,7 +8,7 @@ import time
 
 import uvicorn
 
-from services.map_server.server import MAX_REQUEST_HEAD
+from services.api.limits import MAX_REQUEST_HEAD, JsonErrorH11
 
 
 class Server:
@@ -21,13 +21,14 @@ class Server:
         self.socket.bind(("127.0.0.1", 0))
         self.port = self.socket.getsockname()[1]
         self.url = f"{'https' if tls_cert else 'http'}://127.0.0.1:{self.port}"
-        # h11's request-head limit as gmmap's server sets it: with h11's default (16 KiB), a long GET
-        # parsed only when it came in one piece, and got a plain 400 when the host split it
-        # (test_bad_points' 10,001 points, in a fresh-clone run on a loaded 2-core EPYC).
+        # h11's request-head limit and protocol as gmmap's server sets them: with h11's default
+        # (16 KiB), a long GET parsed only when it came in one piece, and got a plain 400 when the
+        # host split it (test_bad_points' 10,001 points, in a fresh-clone run on a loaded 2-core EPYC).
         config = uvicorn.Config(
             app,
             log_level="warning",
             lifespan="off",
+            http=JsonErrorH11,
             h11_max_incomplete_event_size=MAX_REQUEST_HEAD,
             ssl_certfile=tls_cert,
             ssl_keyfile=tls_key,
