@@ -262,12 +262,24 @@ class TileCache:
         robots = None if robots is None else tuple(sorted(robots))
         with self._lock:
             self._nodes.check_dim(grid)
-            tile, window = self._tile_for(grid, robots, may_shed, layered=max_age > 0)
+            # Before the first scan any dimension is asked for, and a tile is not cached: one of the
+            # other dimension than that scan's would outlive it (mark_stale boxes every tile in one).
+            found = None if self._nodes.dim is None else self._tile_for(grid, robots, may_shed, layered=max_age > 0)
+        if found is None:
+            return self._unknown(grid)
+        tile, window = found
         answer = self._answer_from(tile, max_age, deadline, may_shed)
         if window is None:
             return answer
         with self._lock:
             return replace(answer, prob=_view(tile, answer.prob, window))
+
+    def _unknown(self, grid: Grid) -> TileAnswer:
+        """The answer of a map with no scan: Eq. 11 of no evidence, the state a trace of `grid` would have."""
+        shape = grid.array_shape
+        prob = monte_carlo_estimate(np.zeros(shape), np.zeros(shape), self.samples_per_cell, self.prior)
+        prob.setflags(write=False)
+        return TileAnswer(prob, 0.0, "fresh", self.samples_per_cell)
 
     def _tile_for(
         self, grid: Grid, robots: tuple[str, ...] | None, may_shed: bool, layered: bool

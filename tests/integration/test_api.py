@@ -18,14 +18,16 @@ from PIL import Image
 from gmm_core import Grid, fit_scan
 from gmm_core.analytic.cells import occupancy_at_cells
 from gmm_core.occupancy import DEFAULT_VARIANCE
-from protocol import MapReply, ScanMessage, decode
+from protocol import MapReply, ScanMessage, decode, encode
 from services.api import create_app
 from services.map_server.fleet_map import FleetMap
 from services.map_server.metrics import ServerMetrics
 from services.map_server.state import ServerState
+from services.map_server.store import Store
 from services.map_server.tracers import TracerLoad, TracersSaturated
 from services.render import occupancy_png, probability_png
 from support.browser import CENTRE, FREE_GREY, clicked, headless_chromium, screenshot
+from support.ingest import ingested, scan_of, stored_bytes
 from support.net import get, post, post_bytes
 from support.uvicorn_thread import Server
 
@@ -172,6 +174,20 @@ def test_empty_map_is_unknown(empty_server):
         assert status == 200 and (np.load(io.BytesIO(body)) == 0.5).all()
     assert json.loads(get(f"{empty_server.url}/v1/map/extent")[2]) is None
     assert json.loads(get(f"{empty_server.url}/v1/robots")[2]) == []
+
+
+@pytest.mark.parametrize("bbox, format, scanned", [("-20,-20,20,20", "png", 3), ("-5,-5,-5,5,5,5", "bt", 2)])
+def test_a_tile_asked_for_before_the_first_scan_leaves_ingest_working(tmp_path, bbox, format, scanned):
+    """A viewer (or an export) on a fresh server, then the first robot's scans, of the other dimension:
+    they are acknowledged and counted toward the robot's quota."""
+    state = ServerState(fleet="default", fleet_map=FleetMap("default"), store=Store(tmp_path))
+    with Server(create_app(state)) as running:
+        assert get(f"{running.url}/v1/occupancy?bbox={bbox}&resolution=0.2&format={format}")[0] == 200
+        messages = [scan_of(scanned, node) for node in (0, 1)]
+        answers = ingested(state, messages, quota_bytes=1 << 20)
+        assert [(type(a).__name__, a.ids) for a in answers] == [("Ack", (0, 1))]
+        assert stored_bytes(state, "r") == sum(len(encode(m)) for m in messages)
+        assert json.loads(get(f"{running.url}/v1/map/extent")[2])["dim"] == scanned
 
 
 def test_points(server, fleet_map):

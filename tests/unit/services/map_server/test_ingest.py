@@ -1,5 +1,6 @@
 """Ingest under load: scans waiting in the queue are announced to their robots (Ack.queued), and
-the map's tracers wait while a batch is ingested (ingest first)."""
+the map's tracers wait while a batch is ingested (ingest first); a map asked for before its first
+scan still takes, acknowledges and counts that scan."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
 from services.map_server.store import Store
+from support.ingest import ingested, scan_of, stored_bytes
 
 
 @pytest.fixture(scope="module")
@@ -109,3 +111,15 @@ def test_a_batch_holds_the_tracers_only_when_its_oldest_message_waited(tmp_path,
         assert holds == [1]
     finally:
         ingest.stop()
+
+
+@pytest.mark.parametrize("asked, scanned", [(2, 3), (3, 2)])
+def test_a_tile_asked_for_before_the_first_scan_leaves_ingest_and_the_quota_working(tmp_path, asked, scanned):
+    """A map with no scan yet answers a grid of either dimension (a viewer, a robot's MapQuery at
+    start-up); the first scans, of the other dimension, are then stored, acknowledged and counted."""
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    state.fleet_map.occupancy(Grid.from_bbox([-20.0] * asked, [20.0] * asked, 0.5))
+    messages = [scan_of(scanned, node) for node in (0, 1)]
+    answers = ingested(state, messages, quota_bytes=1 << 20)
+    assert [(type(a).__name__, a.ids) for a in answers] == [("Ack", (0, 1))]
+    assert stored_bytes(state, "r") == sum(len(encode(m)) for m in messages)

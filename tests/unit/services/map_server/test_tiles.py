@@ -1,5 +1,5 @@
 """Tiles under load: the age of the state served, stale answers bounded in age, updates coalesced,
-and requests shed when the tracers are saturated."""
+and requests shed when the tracers are saturated; a map with no scan caches no tile."""
 
 import threading
 import time
@@ -15,6 +15,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import MAX_STALE_S, TileCache
 from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
 from support.fuzz import scan_like_mixture
+from support.ingest import scan_of
 from support.net import wait_for
 from support.saturation import saturated_tracers
 
@@ -465,3 +466,18 @@ def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_with_the_neighbo
     hits, misses = offline_counts(scans, None, {n: 0.3 for n in range(3)}, grid)
     assert np.array_equal(thinned.prob, monte_carlo_estimate(hits, misses, 0.3, fleet.prior))
     assert not np.array_equal(thinned.prob, map_estimate(hits, misses, fleet.prior))
+
+
+@pytest.mark.parametrize("asked, scanned", [(2, 3), (3, 2)])
+def test_a_map_with_no_scan_answers_every_grid_unknown_and_caches_none(asked, scanned):
+    """A tile of the dimension asked for before the first scan would outlive that scan in the cache,
+    where the map's dimension and its own differ: every later scan failed to mark it stale."""
+    fleet = FleetMap("f", trace_threads=1)
+    grid = Grid.from_bbox([-20.0] * asked, [20.0] * asked, 0.5)
+    answer = fleet.occupancy_answer(grid)
+    assert answer.prob.shape == grid.array_shape and (answer.prob == 0.5).all()
+    assert fleet.cache_stats()["tiles"] == 0
+    assert fleet.add_scan(scan_of(scanned, 0))
+    assert fleet.occupancy(Grid.from_bbox([-20.0] * scanned, [20.0] * scanned, 0.5)).min() < 0.5
+    assert fleet.cache_stats()["tiles"] == 1
+    assert (answer.kind, answer.age, answer.samples_per_cell) == ("fresh", 0.0, fleet.samples_per_cell)  # up to date
