@@ -255,11 +255,14 @@ class Ingest:
             return
         entries = [ScanEntry.of(m, len(raw), raw) for m, raw in scans]  # what the store and the map keep
         new = state.store.put_scans(scans, entries)  # committed: from here on they may be acknowledged
-        state.fleet_map.add_entries(entries, [m.model for m, _ in scans])  # a held correction applies as it lands
-        acks: dict[str, dict[int, None]] = defaultdict(dict)  # per robot, each node once, in order
+        # Counted as committed, before anything else can fail: a scan of a failed batch is resent,
+        # found held and acknowledged, never counted again.
         for (message, payload), added in zip(scans, new):
             if added:
                 self._add_usage(message.robot, len(payload))
+        state.fleet_map.add_entries(entries, [m.model for m, _ in scans])  # a held correction applies as it lands
+        acks: dict[str, dict[int, None]] = defaultdict(dict)  # per robot, each node once, in order
+        for message, payload in scans:
             state.metrics.accepted.labels("scan").inc()
             state.metrics.bytes_received.labels(message.robot).inc(len(payload))
             acks[message.robot][message.node] = None  # resends too: the sender must stop resending

@@ -1,6 +1,6 @@
 """Ingest under load: scans waiting in the queue are announced to their robots (Ack.queued), and
 the map's tracers wait while a batch is ingested (ingest first); a map asked for before its first
-scan still takes, acknowledges and counts that scan."""
+scan still takes, acknowledges and counts that scan; what a failed batch stored counts toward the quota."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
 from services.map_server.store import Store
-from support.ingest import ingested, scan_of, stored_bytes
+from support.ingest import ingested, key_of, scan_of, stored_bytes
 
 
 @pytest.fixture(scope="module")
@@ -123,3 +123,34 @@ def test_a_tile_asked_for_before_the_first_scan_leaves_ingest_and_the_quota_work
     answers = ingested(state, messages, quota_bytes=1 << 20)
     assert [(type(a).__name__, a.ids) for a in answers] == [("Ack", (0, 1))]
     assert stored_bytes(state, "r") == sum(len(encode(m)) for m in messages)
+
+
+def test_scans_stored_by_a_batch_that_then_fails_count_toward_the_quota(tmp_path, monkeypatch):
+    """Such scans are not acknowledged: their robot resends them and finds them held, so their bytes
+    count when they are committed or never."""
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    first, second = scan_of(2, 0), scan_of(2, 1)
+    size = len(encode(first))
+    answers: list = []
+    ingest = Ingest(state, lambda _, raw: answers.append(decode(raw)), quota_bytes=size + len(encode(second)) // 2)
+    add_entries, failed = state.fleet_map.add_entries, threading.Event()
+
+    def failing(*args):
+        failed.set()
+        raise RuntimeError("the map failed after the commit")
+
+    monkeypatch.setattr(state.fleet_map, "add_entries", failing)
+    ingest.start()
+    try:
+        ingest.submit(key_of(first), encode(first))
+        assert failed.wait(60)
+        wait_for(lambda: state.store.nodes("default", "r") == {0})
+        assert stored_bytes(state, "r") == size and not any(a.ids for a in answers)  # none acknowledged
+        monkeypatch.setattr(state.fleet_map, "add_entries", add_entries)
+        for message in (first, second):  # the resend, and a scan the quota has no room for
+            ingest.submit(key_of(message), encode(message))
+        wait_for(lambda: len([a for a in answers if a.ids]) == 2)
+    finally:
+        ingest.stop()
+    assert sorted((type(a).__name__, a.ids) for a in answers if a.ids) == [("Ack", (0,)), ("Rejection", (1,))]
+    assert stored_bytes(state, "r") == size
