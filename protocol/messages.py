@@ -141,8 +141,9 @@ class Ack:
 class Rejection:
     """Store `store` refuses these scans (kind "scan", ids = node ids) or pose-graph revisions
     (kind "poses", ids = revisions) for good: resending them gets the same answer. `reason` is a
-    code (for now only "quota": the robot's storage quota on the server is used up), `detail`
-    says it in words for the robot's log. Robots stop resending them and report the reason.
+    code ("quota": the robot's storage quota on the server is used up; "dimension": the message
+    is 2D and the map 3D, or the reverse), `detail` says it in words for the robot's log. Robots
+    stop resending them and report the reason.
 
     A message of its own (not a flag on Ack), so a decoder that predates it ignores it as an
     unknown type and keeps resending: it can never take a refusal for an acknowledgement.

@@ -7,8 +7,9 @@ message, hold back the scans over their robot's storage quota, commit the others
 the FleetMap, publish the scan Acks; then pose updates one by one (commit, apply, Ack). Nothing
 is acknowledged before its commit.
 
-A scan over the quota is answered with a Rejection, not left unanswered: the robot would
-otherwise resend it forever without knowing why.
+A scan over the quota, and a message of the other dimension than the map's (a map is 2D or 3D
+for good), is answered with a Rejection, not left unanswered: the robot would otherwise resend it
+forever without knowing why.
 
 Ingest comes first: while a batch is processed whose oldest message waited in the queue over
 HOLD_TRACERS_AFTER_S, the map's tracers wait at their next node (FleetMap.ingest_first), so a
@@ -29,6 +30,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable
 from contextlib import nullcontext
+from typing import NamedTuple
 
 from protocol import Ack, PoseGraphUpdate, ProtocolError, Rejection, ScanMessage, ack_key, decode, encode, parse_key
 
@@ -42,6 +44,13 @@ QUEUED_ACK_S = 2.0  # s between the Acks that list a robot's scans still waiting
 QUEUE_LIMIT = 20_000  # a full queue blocks the Zenoh callback: back-pressure instead of loss
 HOLD_TRACERS_AFTER_S = 0.2  # a batch whose oldest message waited this long (s) holds the tracers
 _STOP = object()
+
+
+class Unfit(NamedTuple):
+    """A valid message this map can never take, and why (its dimension is not the map's)."""
+
+    message: ScanMessage | PoseGraphUpdate
+    error: ProtocolError
 
 
 class Ingest:
@@ -168,13 +177,15 @@ class Ingest:
         for key, payload in batch:
             if time.monotonic() > self._deadline:
                 break  # stopping: the rest is not acknowledged, and sent again by its robots
-            message = self._validate(key, payload)
-            if message is None:
+            verdict = self._validate(key, payload)
+            if isinstance(verdict, ScanMessage):
+                scans.append((verdict, payload))
+            elif isinstance(verdict, PoseGraphUpdate):
+                updates.append((verdict, payload))
+            else:  # rejected and counted: no longer announced as queued
                 self._done_waiting_key(key)
-            elif isinstance(message, ScanMessage):
-                scans.append((message, payload))
-            else:
-                updates.append((message, payload))
+                if verdict is not None:
+                    self._refuse(verdict)
         if scans:
             self._ingest_scans(scans)
         for update, payload in updates:
@@ -185,9 +196,10 @@ class Ingest:
         if scan is not None:
             self._done_waiting(scan[0], [scan[1]])
 
-    def _validate(self, key: str, payload: bytes) -> ScanMessage | PoseGraphUpdate | None:
-        """The message, or None after counting why it was rejected."""
-        metrics = self.state.metrics
+    def _validate(self, key: str, payload: bytes) -> ScanMessage | PoseGraphUpdate | Unfit | None:
+        """The message; or, after counting why it was rejected, None, or Unfit for a valid message
+        this map can never take (answered by _process). Touches neither the store nor the map: a
+        fuzzer runs it as the server's oracle (bench/fuzz_ingest.py)."""
         kind = "unknown"
         try:
             fleet, robot, kind, node = parse_key(key)
@@ -201,14 +213,30 @@ class Ingest:
                 raise ProtocolError("key.robot", f"key says {robot}, message says {message.robot}")
             if kind == "scan" and message.node != node:
                 raise ProtocolError("key.node", f"key says {node}, message says {message.node}")
-            if self._dim is not None and message.dim != self._dim:
-                raise ProtocolError("dimension", f"this map is {self._dim}D, the message is {message.dim}D")
-            self._dim = message.dim
-            return message
         except ProtocolError as error:
-            metrics.rejected.labels(kind, error.field).inc()
-            log.debug("rejected %s on %s: %s", kind, key, error)
+            self._count_rejected(kind, key, error)
             return None
+        if self._dim is not None and message.dim != self._dim:
+            error = ProtocolError("dimension", f"this map is {self._dim}D, the message is {message.dim}D")
+            self._count_rejected(kind, key, error)
+            return Unfit(message, error)
+        self._dim = message.dim
+        return message
+
+    def _count_rejected(self, kind: str, key: str, error: ProtocolError) -> None:
+        self.state.metrics.rejected.labels(kind, error.field).inc()
+        log.debug("rejected %s on %s: %s", kind, key, error)
+
+    def _refuse(self, unfit: Unfit) -> None:
+        """Answer an unfit message with a Rejection naming the field: left unanswered, its robot
+        would resend it until its timeout and then blame the network."""
+        message, error = unfit
+        kind, ident = ("scan", message.node) if isinstance(message, ScanMessage) else ("poses", message.revision)
+        log.warning("refused %s %d of %s: %s", kind, ident, message.robot, error)
+        refusal = Rejection(
+            self.state.fleet, message.robot, self.state.store.identity, kind, (ident,), error.field, error.message
+        )
+        self._send(message.robot, refusal)
 
     def _within_quota(self, scans: list[tuple[ScanMessage, bytes]]) -> list[tuple[ScanMessage, bytes]]:
         """The scans that fit their robot's quota; the others are counted and refused.

@@ -81,3 +81,29 @@ def test_add_scan_rejects_bad_input_and_a_restart_numbers_on(procs, data_dir, tm
     ids = [n for n in first + again if n is not None]
     assert ids == list(range(len(ids))) and again[0] == max(n for n in first if n is not None) + 1
     assert stored_nodes(data, "emb") == set(ids) and revision == 1
+
+
+def test_a_robot_of_the_other_dimension_is_told_why(procs, tmp_path):
+    """A 3D robot in a 2D fleet: the server refuses its scans with a Rejection naming the dimension,
+    so the robot says why rather than wait for Acks that never come."""
+    zport, hport, data = free_port(), free_port(), tmp_path / "data"
+    procs.server("server", data, zport, hport)
+    rng = np.random.default_rng(0)
+
+    def config(robot: str) -> GmmapConfig:
+        connect = (f"tcp/127.0.0.1:{zport}",)
+        agent = AgentConfig(robot=robot, zenoh_connect=connect, outbox=str(tmp_path / f"{robot}.db"))
+        return GmmapConfig(agent=agent, keyframe=KeyframeConfig.every_scan())
+
+    with Agent.open(config("flat")) as agent:  # the map's first scan makes it 2D
+        assert agent.add_scan(rng.normal(size=(100, 2)) + [3.0, 0.0], None, Pose.identity(2), 0.0) == 0
+        assert agent.flush(60) == 0
+    wall = rng.normal(size=(400, 3)) + [5.0, 0.0, 0.0]
+    with Agent.open(config("solid")) as agent:
+        assert agent.add_scan(wall, None, Pose.identity(3), 0.0) == 0
+        assert agent.flush(60) == 0  # refused: nothing left to resend
+        refused = agent.refused
+        assert (refused.reason, refused.kind, refused.ids) == ("dimension", "scan", (0,))
+        assert refused.detail == "this map is 2D, the message is 3D"
+        assert agent.outbox.rejected() == [("scan", 0, "dimension", refused.detail)]
+    assert stored_nodes(data, "solid") == set() and stored_nodes(data, "flat") == {0}

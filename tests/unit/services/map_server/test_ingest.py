@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gmm_core import Grid, Pose, fit_scan
-from protocol import Ack, ScanMessage, decode, encode, scan_key
+from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode, scan_key
 from services.map_server import ingest as ingest_module
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
@@ -154,3 +154,20 @@ def test_scans_stored_by_a_batch_that_then_fails_count_toward_the_quota(tmp_path
         ingest.stop()
     assert sorted((type(a).__name__, a.ids) for a in answers if a.ids) == [("Ack", (0,)), ("Rejection", (1,))]
     assert stored_bytes(state, "r") == size
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_message_of_the_other_dimension_is_refused_with_a_rejection_naming_it(tmp_path, dim):
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    other = 5 - dim
+    update = PoseGraphUpdate("default", "r3", 4, ((0, scan_of(other, 0).pose),))
+    answers = ingested(state, [scan_of(dim, 0), scan_of(other, 1, robot="r3"), update])
+    assert [(type(a).__name__, a.robot, a.kind, a.ids) for a in answers] == [
+        ("Rejection", "r3", "scan", (1,)),
+        ("Rejection", "r3", "poses", (4,)),
+        ("Ack", "r", "scan", (0,)),
+    ]
+    detail = f"this map is {dim}D, the message is {other}D"
+    assert [(a.reason, a.detail) for a in answers[:2]] == [("dimension", detail)] * 2
+    assert answers[0].store == state.store.identity
+    assert state.metrics.rejected_total() == 2 and state.store.nodes("default", "r3") == set()

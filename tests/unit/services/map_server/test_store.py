@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gmm_core import Pose, fit_scan
-from protocol import Ack, PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key
+from protocol import PoseGraphUpdate, ScanMessage, decode, encode, poses_key, scan_key
 from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.nodes import ScanEntry
@@ -118,9 +118,16 @@ def test_store_merges_pose_graphs_node_by_node(tmp_path):
 
 
 def run_ingest(state, *phases):
-    """Submit each phase's (key, payload) items, waiting for the previous phase's Acks."""
+    """Submit each phase's (key, payload) items, waiting for the previous phase's first answer (an Ack
+    or a Rejection listing ids: one that only lists scans still queued answers nothing)."""
     acks = []
-    ingest = Ingest(state, lambda key, payload: acks.append((key, decode(payload, expect=Ack))))
+
+    def answered(key: str, payload: bytes) -> None:
+        answer = decode(payload)
+        if answer.ids:
+            acks.append((key, answer))
+
+    ingest = Ingest(state, answered)
     ingest.replay()
     ingest.start()
     for items in phases:
@@ -152,13 +159,18 @@ def test_ingest_acks_after_commit_and_rejects_what_does_not_belong(tmp_path, mod
             (scan_key("default", "r", 0), encode(good)),  # a resend in the same batch: stored once, acked once
             (scan_key("default", "x", 0), encode(good)),  # key names another robot
             (scan_key("default", "r", 5), encode(good)),  # key names another node
-            (scan_key("default", "r", 9), encode(three_d)),  # a 3D scan into a 2D map
             (poses_key("default", "r"), encode(good)),  # a scan on the pose key
             (scan_key("default", "r", 1), b"\x00garbage"),
             ("gmmap/other/r/scan/1", encode(good)),  # another fleet
         ],
+        # A 3D scan into the 2D map: refused, and told (a phase of its own: the Rejection comes before
+        # the commit, and a phase ends at its first answer).
+        [(scan_key("default", "r", 9), encode(three_d))],
     )
-    assert [(k, a.kind, a.ids) for k, a in acks] == [("gmmap/default/r/ack", "scan", (0,))]  # the resend: acked once
+    assert [(k, type(a).__name__, a.kind, a.ids) for k, a in acks] == [
+        ("gmmap/default/r/ack", "Ack", "scan", (0,)),  # the resend: acked once
+        ("gmmap/default/r/ack", "Rejection", "scan", (9,)),
+    ]
     assert state.store.nodes("default", "r") == {0}
     text = state.metrics.render().decode()
     for reason in ("key.robot", "key.node", "dimension", "type", "message", "key"):
