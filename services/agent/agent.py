@@ -59,6 +59,9 @@ log = logging.getLogger("gmmap.agent")
 # s without any answer while messages are in flight before they count as lost (a server that is
 # slow but answering is never resent to; one that restarted is seen at once by its subscription)
 SILENCE_S = 10.0
+# Refusals that every later scan would get too: the robot's quota is used up; the map has the other
+# dimension (for good).
+REFUSES_EVERY_SCAN = ("quota", "dimension")
 
 
 class Agent:
@@ -301,7 +304,7 @@ class Agent:
         self, points: np.ndarray, no_return: np.ndarray | None, pose: Pose, stamp: float, node: int | None = None
     ) -> int | None:
         """Fit one scan and send it; its node id, or None if the keyframe policy skipped it (or the
-        server refused this robot's scans for its quota: see `refused`).
+        server refused this robot's scans for its quota or their dimension: see `refused`).
 
         points: (n, d) returned end points in the sensor frame, metres; no_return: (m, d) directions
         of beams without a return (or None); pose: the sensor's pose in the robot's map frame, as the
@@ -357,7 +360,7 @@ class Agent:
         reach: float | None = None,
     ) -> bool:
         """Send a scan: fitted from its beams, or `raw` (fitted ahead, with its beams' `reach`)."""
-        if self.refused is not None and self.refused.reason == "quota":  # nothing more would be taken
+        if self.refused is not None and self.refused.reason in REFUSES_EVERY_SCAN:  # nothing more would be taken
             self.unsent += 1
             return False
         if node in self.lost:

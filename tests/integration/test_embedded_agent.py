@@ -85,7 +85,7 @@ def test_add_scan_rejects_bad_input_and_a_restart_numbers_on(procs, data_dir, tm
 
 def test_a_robot_of_the_other_dimension_is_told_why(procs, tmp_path):
     """A 3D robot in a 2D fleet: the server refuses its scans with a Rejection naming the dimension,
-    so the robot says why rather than wait for Acks that never come."""
+    so the robot stops sending and says why rather than wait for Acks that never come."""
     zport, hport, data = free_port(), free_port(), tmp_path / "data"
     procs.server("server", data, zport, hport)
     rng = np.random.default_rng(0)
@@ -105,5 +105,7 @@ def test_a_robot_of_the_other_dimension_is_told_why(procs, tmp_path):
         refused = agent.refused
         assert (refused.reason, refused.kind, refused.ids) == ("dimension", "scan", (0,))
         assert refused.detail == "this map is 2D, the message is 3D"
+        moved = Pose.from_quaternion([1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+        assert agent.add_scan(wall, None, moved, 1.0) is None  # nothing more would be taken: not sent
         assert agent.outbox.rejected() == [("scan", 0, "dimension", refused.detail)]
     assert stored_nodes(data, "solid") == set() and stored_nodes(data, "flat") == {0}
