@@ -154,9 +154,9 @@ class Robot:
         return self.graph.anchor
 
     @property
-    def revision(self) -> int:
-        """The newest pose-graph revision applied; -1 before any."""
-        return self.graph.revision
+    def revision(self) -> int | None:
+        """The newest pose-graph revision applied; None before any (as a store inventory says it)."""
+        return self.graph.revision if self.graph.revision >= 0 else None
 
     def world_pose(self, node: Node) -> Pose:
         return self.anchor.compose(node.map_pose) if self.anchor is not None else node.map_pose

@@ -169,7 +169,8 @@ def test_live_ros2_topics_through_a_router_map_as_replay_does(procs, intel, mapp
         path_sent = robot.publish(*intel.path[:2], intel.path[3])
         wait_for(
             lambda: (
-                {r["robot"]: r["pose_revision"] for r in json.loads(http_get(hport, "/v1/robots"))}.get("ros", -1) >= 0
+                {r["robot"]: r["pose_revision"] for r in json.loads(http_get(hport, "/v1/robots"))}.get("ros")
+                is not None
             ),
             30,
             "the pose-graph update",

@@ -92,6 +92,7 @@ def map_x(store, node):
 
 def test_a_late_older_revision_sets_the_nodes_the_newer_one_does_not_list(model):
     store, _ = held_store(model, [0, 1, 2])
+    assert store.robot_rows()[0]["pose_revision"] is None  # none yet: null, as a store inventory says it
     assert store.apply(update(2, [(0, 1.0), (1, 1.0)]))
     assert store.apply(update(1, [(1, 0.5), (2, 0.5)]))
     assert [map_x(store, n) for n in (0, 1, 2)] == [1.0, 1.0, 0.5]  # node 1 keeps revision 2's pose
