@@ -117,6 +117,12 @@ class FleetMap:
         with self._lock:
             return self._nodes.apply(update)
 
+    def set_last_seen(self, robot: str, when: float) -> None:
+        """When `robot` was last heard from (time.time()): a restart replays its scans now, but saw
+        it when they were stored."""
+        with self._lock:
+            self._nodes.robots[robot].last_seen = when
+
     # -- queries --------------------------------------------------------------------------
     def counts(self, grid: Grid, robots: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Hit and miss evidence (float32) on `grid` from the nodes that can reach it (all robots or `robots`)."""

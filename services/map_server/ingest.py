@@ -145,6 +145,8 @@ class Ingest:
         scans += sum(fleet_map.add_entries(batch))
         for robot, size in usage.items():  # once per robot, not once per scan
             self._add_usage(robot, size)
+        for robot, when in self.state.store.last_received(self.state.fleet).items():
+            fleet_map.set_last_seen(robot, when)
         return scans
 
     # -- worker --------------------------------------------------------------------------------

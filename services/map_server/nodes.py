@@ -145,7 +145,7 @@ class Robot:
     graph: PoseGraph = field(default_factory=PoseGraph)
     anchor_changes: int = 0  # bumped whenever the anchor changes
     bytes_received: int = 0  # wire bytes of its scans
-    last_seen: float = 0.0  # time.time() of its newest message
+    last_seen: float = 0.0  # time.time() of its newest message (after a restart: the newest stored)
     components: int = 0  # of all its scan models
 
     @property

@@ -217,6 +217,17 @@ class Store:
                 return
             after = rows[-1][:2]
 
+    def last_received(self, fleet: str) -> dict[str, float]:
+        """When (time.time()) the newest scan or pose-graph revision of each robot was stored: when
+        a restarted server last saw it."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT robot, MAX(received) FROM (SELECT robot, received FROM scans WHERE fleet = ?1 "
+                "UNION ALL SELECT robot, received FROM poses WHERE fleet = ?1) GROUP BY robot",
+                (fleet,),
+            ).fetchall()
+        return dict(rows)
+
     def scan_count(self, fleet: str, robot: str | None = None) -> int:
         query, args = "SELECT COUNT(*) FROM scans WHERE fleet = ?", [fleet]
         if robot is not None:

@@ -15,6 +15,7 @@ from services.map_server.ingest import Ingest
 from services.map_server.nodes import ScanEntry
 from services.map_server.state import ServerState
 from services.map_server.store import Store
+from support.ingest import ingested, scan_of
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +196,20 @@ def test_a_correction_that_arrives_before_its_scan_is_applied_to_it(tmp_path, mo
     restarted = ServerState("default", FleetMap("default"), Store(tmp_path))
     assert Ingest(restarted, lambda *_: None).replay() == 2
     assert restarted.fleet_map.trajectory("r")[:, 0].tolist() == [4.0, 6.0]
+
+
+def test_a_restart_gives_each_robot_the_time_it_was_last_seen_before(tmp_path):
+    """The time its newest scan or pose-graph revision was stored, not the time of the replay."""
+    state = ServerState("default", FleetMap("default"), Store(tmp_path))
+    started = time.time()
+    ingested(state, [scan_of(2, 0, robot="a"), scan_of(2, 0, robot="b")])
+    time.sleep(0.01)
+    corrected = time.time()
+    ingested(state, [poses("b", 1, [(0, 1.0)])])
+    live = {row["robot"]: row["last_seen"] for row in state.fleet_map.robots()}
+    time.sleep(0.01)
+    replayed = time.time()
+    restarted = ServerState("default", FleetMap("default"), Store(tmp_path))
+    Ingest(restarted, lambda *_: None).replay()
+    seen = {row["robot"]: row["last_seen"] for row in restarted.fleet_map.robots()}
+    assert started <= seen["a"] <= live["a"] < corrected <= seen["b"] <= live["b"] < replayed
