@@ -50,6 +50,7 @@ from .state import ServerState
 from .store import Store
 from .tiles import BUSY_SAMPLES_PER_CELL
 from .tokens import TokenFile
+from .tracers import TracingStopped
 from .warmup import warm_kernels
 
 log = logging.getLogger("gmmap.server")
@@ -80,12 +81,25 @@ def _query_of(state: ServerState, payload: bytes, kind: type):
     return query
 
 
+def _selected(state: ServerState, robots: tuple[str, ...] | None) -> tuple[str, ...] | None:
+    """The robots a query names (None: every robot): some, each one the fleet has had a scan or a pose
+    graph from, as the HTTP API has them (a name mistyped is refused, not answered with a blank map)."""
+    if robots is None:
+        return None
+    if not robots:
+        raise ProtocolError("robots", "name at least one robot, or leave robots out to read every robot")
+    if unknown := state.fleet_map.unknown_robots(robots):
+        raise ProtocolError("robots", f"no robot {', '.join(unknown)} in fleet {state.fleet!r}")
+    return robots
+
+
 def answer(state: ServerState, payload: bytes) -> bytes:
     """MapQuery bytes -> MapReply bytes; ProtocolError or ValueError for a bad query."""
     query = _query_of(state, payload, MapQuery)
     grid = query_grid(query)
+    robots = _selected(state, query.robots)
     started = time.perf_counter()
-    prob = state.fleet_map.occupancy(grid, query.robots)
+    prob = state.fleet_map.occupancy(grid, robots)
     state.metrics.query_seconds.observe(time.perf_counter() - started)
     return encode(MapReply(state.fleet, grid.origin, grid.resolution, prob))
 
@@ -98,7 +112,7 @@ def answer_points(state: ServerState, payload: bytes) -> bytes:
         resolution = params.resolution(query.resolution)
         params.check_dimension(query.dim, state.fleet_map.dim, "points")
         points = params.points(query.points, query.dim, "points")
-        robots = None if query.robots is None else params.robots(list(query.robots))
+        robots = _selected(state, None if query.robots is None else params.robots(list(query.robots)))
     except params.ApiError as error:
         raise ProtocolError(error.field, error.message) from None
     started = time.perf_counter()
@@ -152,6 +166,8 @@ class ZenohSide:
                 field = error.field if isinstance(error, ProtocolError) else "value"
                 self.state.metrics.rejected.labels(parse_key(key)[2], field).inc()
                 query.reply_err(str(error))
+            except TracingStopped:  # the server is stopping: no fault to log
+                query.reply_err("server stopping: ask again once it is back")
             except Exception as error:  # noqa: BLE001 - reported to the querier, logged here
                 log.exception("query on %s failed", key)
                 query.reply_err(f"internal error: {type(error).__name__}")

@@ -24,6 +24,7 @@ from protocol import (
     ack_key,
     decode,
     encode,
+    occupancy_key,
     points_key,
     poses_key,
     scan_key,
@@ -287,13 +288,18 @@ def test_zenoh_point_query_answers_as_the_http_api(procs, session_to, tmp_path, 
         (PointQuery("default", np.zeros((2, 5 - dim)), 0.1), "points"),  # a 3D query of a 2D map, or 2D of 3D
         (PointQuery("default", rng.uniform(-50, 50, (1001, dim)), 0.1, None, "analytic"), "points"),
         (PointQuery("other", points, 0.1), "fleet"),  # on this fleet's key
+        (PointQuery("default", points, 0.1, ("nosuch",)), "robots"),  # a mistyped robot: not a blank answer
+        (PointQuery("default", points, 0.1, ()), "robots"),
     ):
         replies = list(session.get(points_key("default"), payload=encode(query), timeout=30))
         assert len(replies) == 1 and replies[0].err is not None
         assert replies[0].err.payload.to_string().startswith(f"{field}:"), replies[0].err.payload.to_string()
+    grid = Grid.from_bbox(np.full(dim, -1.0), np.full(dim, 1.0), 0.1)
+    replies = list(session.get(occupancy_key("default"), payload=map_query(grid, ("w", "nosuch")), timeout=30))
+    assert replies[0].err.payload.to_string() == "robots: no robot nosuch in fleet 'default'"
     assert query_points(session, "default", points[:1], 0.1, timeout=30).probabilities[0] > 0.7  # still serving
     text = http_get(hport, "/metrics").decode()
-    for field, count in (("resolution", 1), ("points", 2), ("fleet", 1)):
+    for field, count in (("resolution", 1), ("points", 2), ("fleet", 1), ("robots", 2)):
         assert metric(text, "gmmap_messages_rejected_total", kind="points", reason=field) == count
 
 
