@@ -175,6 +175,7 @@ class LiveSource:
             with self._lock:
                 self._scans_queued -= 1
         self.counts["received"] += 1
+        self.counts[f"received_{role}"] += 1
         keys, types = self.topics[role]
         try:
             if attachment is not None and self.ros.mapping == "rmw_zenoh":
@@ -330,6 +331,14 @@ def run_ros2_agent(config: GmmapConfig) -> int:
             file=sys.stderr,
             flush=True,
         )
+        if source is not None and not counts["received_scan"]:
+            # the likeliest cause is a name: a topic, a mapping or a namespace the robot does not use
+            print(
+                f"gmmap agent {o.robot}: warning: no sample arrived on the scan topic's key "
+                f"{source.topics['scan'][0].subscription}: check --scan-topic, --ros-mapping and --ros-namespace",
+                file=sys.stderr,
+                flush=True,
+            )
         if pending:
             print(
                 f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; they stay in "

@@ -308,6 +308,8 @@ def test_a_secured_router_passes_each_robots_ros_topics_and_the_map_and_no_forge
         assert procs.finish(agent, 60) == 0, procs.log(agent)
     assert "ros2 stopped: 41 samples, 20 nodes" in procs.log(agents["a"]), procs.log(agents["a"])
     assert "ros2 stopped: 0 samples, 0 nodes" in procs.log(agents["b"]), procs.log(agents["b"])
+    assert "warning: no sample arrived on the scan topic's key" in procs.log(agents["b"])
+    assert "no sample arrived" not in procs.log(agents["a"])
     assert stored_nodes(data, "b") == set()
 
 
