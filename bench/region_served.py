@@ -9,7 +9,7 @@ pose-graph update), and a client asks `GET /v1/occupancy` for the region of quer
 x 40 cells at 0.1 m around the last robot, npy) on the server's empty tile cache:
 
 - first answer: the time to it, the samples per cell it holds (X-Map-Samples-Per-Cell: a large
-  update is traced with the busy samples per cell first, tiles.py) and its AUROC against the mine
+  update is traced with the busy samples per cell first, tile_updates.py) and its AUROC against the mine
   world's truth over the cells the refined answer has evidence in;
 - refined: asked every POLL_S (0.05 s), the time until an answer holds the map's 4 samples per cell
   (asked again a second later: "changed after!" where that answer differs, which it must not);

@@ -17,7 +17,7 @@ then the seconds of the new scans per mission second. Usage:
         [--samples-per-cell 4] [--repose-cells 0.25]
 
 `--samples-per-cell 1 --repose-cells 1` prices what a server's updates with busy tracers trace
-(server.busy_samples_per_cell, tiles.BUSY_REPOSE_CELLS).
+(server.busy_samples_per_cell, tile_updates.BUSY_REPOSE_CELLS).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from gmm_core import Grid, fit_scan  # noqa: E402
 from protocol import PoseGraphUpdate, ScanMessage, decode, encode  # noqa: E402
 from services.agent.sources import Node, RelaxingCorrections  # noqa: E402
-from services.map_server import tiles  # noqa: E402
+from services.map_server import tile_updates  # noqa: E402
 from services.map_server.fleet_map import FleetMap  # noqa: E402
 from services.map_server.nodes import ScanEntry  # noqa: E402
 from services.sim.fleet import SimulatedFleet, correction_interval, robot_name  # noqa: E402
@@ -94,9 +94,9 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--samples-per-cell", type=float, default=4.0)
-    parser.add_argument("--repose-cells", type=float, default=tiles.REPOSE_CELLS)
+    parser.add_argument("--repose-cells", type=float, default=tile_updates.REPOSE_CELLS)
     args = parser.parse_args()
-    tiles.REPOSE_CELLS = args.repose_cells
+    tile_updates.REPOSE_CELLS = args.repose_cells
     schedules = {"at one instant": False, "spread": True}
     closure_s, moved, new_s = {}, {}, {}
     for name, spread in schedules.items():

@@ -38,7 +38,7 @@ import numpy as np
 from gmm_core import Grid, fit_scan
 from protocol import ScanMessage
 from services.datasets import read_scans
-from services.map_server import tiles, tracers
+from services.map_server import tile_serving, tiles, tracers
 from services.map_server.fleet_map import FleetMap
 from services.map_server.nodes import ScanEntry
 from services.map_server.tracers import TracersSaturated
@@ -77,7 +77,7 @@ def main() -> None:
         trace = tracers.TracerPool.trace
         tracers.TracerPool.trace = lambda pool, grid, plus, minus, background=False: trace(pool, grid, plus, minus)
     if args.policy == "off":
-        tiles.MAX_STALE_S, tiles.COALESCE_S = math.inf, -1.0
+        tiles.MAX_STALE_S, tile_serving.COALESCE_S = math.inf, -1.0
         tracers.SATURATED_QUEUE_PER_THREAD, tracers.SATURATED_WAIT_S = 1 << 30, math.inf
     fleet = FleetMap("f", trace_threads=args.trace_threads)
     if args.robots:

@@ -65,8 +65,8 @@ class ServerConfig:
     # one process use (about 1.2 measured); each process costs about 300 MiB with its own sample cache.
     trace_processes: bool = False
     # Monte-Carlo samples per cell of the nodes a tile update begun while any tracer has work traces
-    # (tiles.py), refined once the tracers are idle: a fraction of the cost, with more noise; None:
-    # tiles.BUSY_SAMPLES_PER_CELL by the map's dimension (1 in 2D, 0.3 in 3D, against the default
+    # (tile_updates.py), refined once the tracers are idle: a fraction of the cost, with more noise; None:
+    # tile_updates.BUSY_SAMPLES_PER_CELL by the map's dimension (1 in 2D, 0.3 in 3D, against the default
     # 4); 0: every update with the reconstruction's samples per cell.
     busy_samples_per_cell: float | None = None
 

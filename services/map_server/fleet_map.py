@@ -27,7 +27,8 @@ from services.host import cpu_cores
 
 from .nodes import NodeKey, NodeStore, ScanEntry
 from .samples import SampleCache
-from .tiles import MAX_STALE_S, TileAnswer, TileCache
+from .tile_state import TileAnswer
+from .tiles import MAX_STALE_S, TileCache
 from .tracers import TracerPool
 
 
@@ -54,10 +55,10 @@ class FleetMap:
         """stored_bytes: a scan's message as a store holds it (Store.reader); given, nodes hold neither
         their models nor their bytes (a server keeps a shift's scans: nodes.py).
         busy_samples_per_cell: what tile updates begun while any tracer has work trace new and moved
-        nodes with, one for all grids or one by dimension (tiles.py); None: always `samples_per_cell`.
+        nodes with, one for all grids or one by dimension (tile_updates.py); None: always `samples_per_cell`.
         trace_store: the file of the store `stored_bytes` reads, to trace in a process per tracer
         thread reading the nodes from it (tracers.py); None: in the tracer threads.
-        report_slow_updates: log tile updates over tiles.SLOW_UPDATE_S (a throwaway map logs none)."""
+        report_slow_updates: log tile updates over tile_updates.SLOW_UPDATE_S (a throwaway map logs none)."""
         self.fleet = fleet
         self.trace_threads = max(1, trace_threads or cpu_cores())
         self.samples_per_cell = samples_per_cell

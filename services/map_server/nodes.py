@@ -127,7 +127,7 @@ class Posed(NamedTuple):
     stamp: Stamp  # of `pose`
     node: Node
     pose: Pose  # node frame -> world
-    samples_per_cell: float | None = None  # what a tile counts it at; None: the map's (tiles.py, under load)
+    samples_per_cell: float | None = None  # what a tile counts it at; None: the map's (tile_updates.py, under load)
 
     def counted_with(self, samples_per_cell: float | None) -> Posed:
         """The node as a tile counts it with `samples_per_cell` (None: the map's); itself if so already."""

@@ -48,7 +48,7 @@ from .fleet_map import FleetMap
 from .ingest import Ingest
 from .state import ServerState
 from .store import Store
-from .tiles import BUSY_SAMPLES_PER_CELL
+from .tile_updates import BUSY_SAMPLES_PER_CELL
 from .tokens import TokenFile
 from .tracers import TracingStopped
 from .warmup import warm_kernels

@@ -5,7 +5,7 @@ Every `map_period` s at most, and only when the map changed (a scan stored or a 
 applied: the robots' node counts and revisions differ), the grid is asked of the FleetMap exactly
 as an HTTP tile is (`FleetMap.occupancy_answer`, the tile cache's incremental update), over the
 whole extent of the map (`FleetMap.extent`), cut around its centre to `map_cells` cells. A state
-served older than the map (busy tracers, tiles.py) is published and asked for again a period later.
+served older than the map (busy tracers, tile_serving.py) is published and asked for again a period later.
 - Frame `map`; the grid's min corner is the map origin, cells of `map_resolution`, rows along y.
 - data: round(100 p) from the MAP estimate (Eq. 11); -1 where p is exactly 0.5, the value of a
   cell no ray reached (Eq. 12's dead band is left to the consumer, e.g. map_server's thresholds).
@@ -157,7 +157,7 @@ class RosMapPublisher:
             try:
                 current = self.publish_grid()
                 self.publish_trajectories()
-                # a state older than the map (the tracers were busy: tiles.py) goes out again next period
+                # a state older than the map (the tracers were busy: tile_serving.py) goes out again next period
                 published = signature if current else None
             except Exception:  # noqa: BLE001 - a failed publication is logged; the server keeps serving
                 log.exception("publishing the map on %s failed", self.topic)

@@ -76,7 +76,7 @@ def test_two_agents_replay_intel_with_pose_correction(procs, session_to, intel, 
     for a in agents:
         assert procs.finish(a, 90) == 0, procs.log(a)
     # Both robots by name: a tile of its own, so the corrected map below is traced from its poses
-    # (a cached tile counts a node that moved under a quarter cell at its old pose: tiles.REPOSE_CELLS).
+    # (a cached tile counts a node that moved under a quarter cell at its old pose: tile_updates.REPOSE_CELLS).
     _, odometry_map = served_map(session, grid, tuple(HALVES))
 
     # Phase 2: the same robots again, now with their back end: every scan is a resend (stored

@@ -12,7 +12,7 @@ from gmm_core.occupancy import map_estimate
 from gmm_core.reconstruct import reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import PoseGraphUpdate, ScanMessage
-from services.map_server import nodes, tiles
+from services.map_server import nodes, tile_set, tile_updates, tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import TileCache
 from services.map_server.tracers import TracerPool
@@ -46,11 +46,11 @@ def test_served_map_equals_offline_reconstruction(fitted):
     assert np.array_equal(fleet.occupancy(GRID), offline(scans, models, "r1"))
 
 
-@pytest.mark.parametrize("repose_cells", [0.0, tiles.REPOSE_CELLS])
+@pytest.mark.parametrize("repose_cells", [0.0, tile_updates.REPOSE_CELLS])
 def test_pose_update_reposes_without_refitting(fitted, monkeypatch, repose_cells):
     """A cached tile traces a moved node again only once it moved by more than REPOSE_CELLS of a
     cell at its reach (0: every move); it then equals the offline map of the poses it counts."""
-    monkeypatch.setattr(tiles, "REPOSE_CELLS", repose_cells)
+    monkeypatch.setattr(tile_updates, "REPOSE_CELLS", repose_cells)
     scans, models = fitted
     fleet = FleetMap("f")
     estimates = [drifted(s.pose, i) for i, s in enumerate(scans)]
@@ -118,7 +118,7 @@ def test_a_stale_tile_brought_up_to_date_has_the_bytes_of_a_fresh_one(fitted, mo
     """Scans arriving, partial corrections and an anchor change between queries: each updated tile
     (only the difference traced) equals the tile a new FleetMap traces from scratch. (Every move is
     traced here; sub-cell moves left out: test_pose_update_reposes_without_refitting.)"""
-    monkeypatch.setattr(tiles, "REPOSE_CELLS", 0.0)
+    monkeypatch.setattr(tile_updates, "REPOSE_CELLS", 0.0)
     scans, models = fitted
     served = FleetMap("f")
     messages = [
@@ -153,7 +153,7 @@ def test_the_change_log_stays_bounded_while_tiles_still_update_exactly(fitted, m
     to CHANGE_LOG_LIMIT, and is traced afresh once the log no longer covers it. Every tile, updated
     or retraced, has the bytes of a fresh one."""
     monkeypatch.setattr(nodes, "CHANGE_LOG_LIMIT", 64)  # halved when full: 32, still over one step
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # GRID and corner are tiles of their own
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)  # GRID and corner are tiles of their own
     afresh, trace_afresh = [], TileCache._trace_afresh
 
     def traced_afresh(cache, tile, *args):
@@ -235,7 +235,7 @@ def test_a_patient_request_waits_for_a_slow_update_only_so_long_then_gets_the_pr
 
 
 def test_max_age_zero_waits_for_every_change_even_with_a_previous_state_and_busy_tracers(fitted, monkeypatch):
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # GRID's tile is the one max_age 0 asks (never a layer)
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)  # GRID's tile is the one max_age 0 asks (never a layer)
     scans, models = fitted
     fleet, before = traced_then_changed(fitted)
     (tile,) = fleet._tiles.values()

@@ -10,7 +10,7 @@ import pytest
 from gmm_core import Grid, Pose, ScanModel, fit_scan
 from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate, monte_carlo_estimate
 from protocol import PoseGraphUpdate, ScanMessage
-from services.map_server import tiles
+from services.map_server import tile_serving, tile_set, tile_state, tile_updates, tiles
 from services.map_server.fleet_map import FleetMap
 from services.map_server.tiles import MAX_STALE_S, TileCache
 from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
@@ -39,7 +39,7 @@ def test_an_answer_says_how_long_its_state_has_been_out_of_date(messages):
     fleet = fleet_of(messages[:20])
     first = fleet.occupancy_answer(GRID)
     assert (first.kind, first.age) == ("updated", 0.0)
-    assert fleet.occupancy_answer(GRID) == tiles.TileAnswer(first.prob, 0.0, "fresh", fleet.samples_per_cell)
+    assert fleet.occupancy_answer(GRID) == tile_state.TileAnswer(first.prob, 0.0, "fresh", fleet.samples_per_cell)
     changed = time.monotonic()  # at most the time the change is stamped with
     fleet.add_scan(messages[20])
     (tile,) = fleet._tiles.values()
@@ -102,8 +102,8 @@ def test_busy_tracers_coalesce_a_recent_state_and_update_an_older_one_in_the_bac
     """With every tracer busy, a state at most COALESCE_S old with at most COALESCE_CHANGES changes
     since is served as is; otherwise it is served stale while an update starts in the background
     (with idle tracers the request updates it itself: other tests)."""
-    monkeypatch.setattr(tiles, "COALESCE_CHANGES", 2)
-    monkeypatch.setattr(tiles, "COALESCE_S", 0.2)
+    monkeypatch.setattr(tile_serving, "COALESCE_CHANGES", 2)
+    monkeypatch.setattr(tile_serving, "COALESCE_S", 0.2)
     fleet = fleet_of(messages[:20])
     before = fleet.occupancy(GRID)
     monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
@@ -122,7 +122,7 @@ def test_busy_tracers_coalesce_a_recent_state_and_update_an_older_one_in_the_bac
 
 
 def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover(messages, monkeypatch):
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # `warm` and `changed` are tiles of their own
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)  # `warm` and `changed` are tiles of their own
     fleet = fleet_of(messages[:20], trace_threads=1)
     warm, changed = GRID, Grid.from_bbox([-4.0, -8.0], [4.0, 0.0], 0.1)
     fleet.occupancy(warm)
@@ -173,7 +173,7 @@ def test_updates_begun_while_the_tracers_are_busy_thin_the_samples_and_idle_trac
     """While every tracer is busy, an update counts the nodes it traces with busy_samples_per_cell,
     new and moved alike (a moved node is taken out as it was counted); the answer says so. Idle
     tracers refine the tile in the background, REFINE_NODES at a time, to the bytes of a fresh map."""
-    monkeypatch.setattr(tiles, "REPOSE_CELLS", 0.0)  # every move traced
+    monkeypatch.setattr(tile_updates, "REPOSE_CELLS", 0.0)  # every move traced
     monkeypatch.setattr(tiles, "REFINE_NODES", 3)  # the 4 thinned nodes in two refinements
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
     assert fleet.occupancy_answer(GRID).samples_per_cell == 4.0  # idle tracers: the map's
@@ -244,7 +244,7 @@ def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages,
     tiled = viewer_tiles(0.1)
     layered = [fleet.occupancy(grid) for grid in tiled]
     assert fleet.cache_stats()["tiles"] == 1 and fleet.cache_stats()["misses"] == 1  # one trace for every tile
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)
     own = [alone.occupancy(grid) for grid in tiled]
     assert alone.cache_stats()["tiles"] == len(tiled)
     differ = sum(int(np.sum(a != b)) for a, b in zip(layered, own))
@@ -269,7 +269,7 @@ def test_tiles_on_the_lattice_are_windows_of_one_layer_kept_up_to_date(messages,
     off_lattice = Grid(GRID.origin + 0.05, 0.1, (64, 64))
     fleet.occupancy(off_lattice)
     assert fleet.cache_stats()["tiles"] == 2  # a tile of its own
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 200 * 200)
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 200 * 200)
     far = Grid([100.0, 100.0], 0.1, (64, 64))  # would grow the layer past its bound
     fleet.occupancy(far)
     assert fleet.cache_stats()["tiles"] == 3
@@ -279,7 +279,7 @@ def test_a_large_update_is_thinned_on_idle_tracers_unless_every_change_is_asked(
     """Idle tracers trace an HTTP request's update with every sample only up to FULL_UPDATE_NODES nodes:
     a larger one is thinned and refined behind it; a request for every change (max_age 0) and an
     in-process caller get every sample."""
-    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
+    monkeypatch.setattr(tile_updates, "FULL_UPDATE_NODES", 10)
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
     assert fleet.occupancy_answer(GRID, patience=0.0).samples_per_cell == 1.0  # 20 nodes, afresh: thinned
     wait_for(lambda: fleet.occupancy_answer(GRID).samples_per_cell == 4.0, 30, "the refinement")
@@ -297,20 +297,20 @@ def test_an_answer_states_the_samples_per_cell_of_the_state_it_serves(messages, 
     read from the tile, which a refinement updates before it publishes: a client that waited for
     the map's samples per cell was served the thinned state, as bench/region_served.py saw.) A
     request for every change (max_age 0) meanwhile waits for the refined state."""
-    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 10)
+    monkeypatch.setattr(tile_updates, "FULL_UPDATE_NODES", 10)
     fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
     grid = Grid(GRID.origin + 0.05, GRID.resolution, GRID.shape)  # off the lattice: max_age 0 asks this tile too
     thinned = fleet.occupancy_answer(grid, patience=0.0)  # 20 nodes, afresh: thinned
     assert thinned.samples_per_cell == 1.0
     estimating, publish = threading.Event(), threading.Event()
-    estimate = tiles.monte_carlo_estimate
+    estimate = tile_updates.monte_carlo_estimate
 
     def held(hits, misses, samples_per_cell, prior):  # the refinement's state, held before it is published
         estimating.set()
         assert publish.wait(30)
         return estimate(hits, misses, samples_per_cell, prior)
 
-    monkeypatch.setattr(tiles, "monte_carlo_estimate", held)
+    monkeypatch.setattr(tile_updates, "monte_carlo_estimate", held)
     assert fleet.occupancy_answer(grid).kind == "fresh"  # served as it is, refined behind it
     assert estimating.wait(30)
     during = fleet.occupancy_answer(grid)
@@ -333,7 +333,7 @@ def test_a_correction_by_less_than_a_cell_reaches_the_tile_on_idle_tracers(messa
     by more than REPOSE_CELLS it is loose, and idle tracers trace it again at its pose, as they refine
     thinned nodes. Idle tracers trace such a move at once, in a large update too (thinned, refined
     behind it). Half a cell here: a pose-graph correction of many nodes reaches the tile either way."""
-    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 2)  # the 3 moved nodes: a large update
+    monkeypatch.setattr(tile_updates, "FULL_UPDATE_NODES", 2)  # the 3 moved nodes: a large update
     half_cell = np.array([0.5 * GRID.resolution, 0.0, 0.0])
     update = PoseGraphUpdate(
         "f", "r1", 1, tuple((m.node, Pose.from_xytheta(*(m.pose.as_xytheta() + half_cell))) for m in messages[:3])
@@ -367,8 +367,8 @@ def test_an_update_applies_at_most_max_update_nodes_the_longest_changed_first(me
     time, oldest first: each answer says how long ago the first change it lacks was made, and the
     last has the bits of a fresh map. A request for every change (max_age 0) applies them all at once,
     and so does an in-process caller."""
-    monkeypatch.setattr(tiles, "MAX_UPDATE_NODES", 5)
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
+    monkeypatch.setattr(tile_updates, "MAX_UPDATE_NODES", 5)
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
     fleet = fleet_of(messages[:20])
     fleet.occupancy(GRID)
     for msg in messages[20:32]:
@@ -418,7 +418,7 @@ def test_only_an_unbounded_update_gives_way_to_other_traces(messages, monkeypatc
     """A bounded update (an HTTP request's, patience given) holds its tile while it traces a bounded
     number of nodes: its parts do not give way to other traces', even at every sample on idle
     tracers. A request for every change (max_age 0) may trace thousands: its parts give way."""
-    monkeypatch.setattr(tiles, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
+    monkeypatch.setattr(tile_set, "LAYER_MAX_CELLS", 0)  # max_age 0 asks the same tile
     fleet = fleet_of(messages[:20])
     flags, trace = [], TracerPool.trace
 
@@ -436,18 +436,18 @@ def test_only_an_unbounded_update_gives_way_to_other_traces(messages, monkeypatc
 
 
 def test_busy_samples_per_cell_by_dimension_and_3d_tiles_served_with_the_neighbourhoods_prior(monkeypatch):
-    """A server's busy samples per cell are one per dimension (tiles.BUSY_SAMPLES_PER_CELL); a thinned
+    """A server's busy samples per cell are one per dimension (tile_updates.BUSY_SAMPLES_PER_CELL); a thinned
     3D tile is served as monte_carlo_estimate of its counts at those samples (the neighbourhood's prior)."""
-    by_dim = FleetMap("f", busy_samples_per_cell=tiles.BUSY_SAMPLES_PER_CELL, trace_threads=1)
+    by_dim = FleetMap("f", busy_samples_per_cell=tile_updates.BUSY_SAMPLES_PER_CELL, trace_threads=1)
     grids = {dim: Grid(np.full(dim, -4.0), 0.25, (32,) * dim) for dim in (2, 3)}
-    assert {d: by_dim._tiles.busy_samples_per_cell(g) for d, g in grids.items()} == tiles.BUSY_SAMPLES_PER_CELL
+    assert {d: by_dim._tiles.busy_samples_per_cell(g) for d, g in grids.items()} == tile_updates.BUSY_SAMPLES_PER_CELL
     one = FleetMap("f", busy_samples_per_cell=2.0, trace_threads=1)
     assert [one._tiles.busy_samples_per_cell(g) for g in grids.values()] == [2.0, 2.0]
     over = FleetMap("f", samples_per_cell=1.0, busy_samples_per_cell={2: 0.5, 3: 1.0}, trace_threads=1)
     assert [over._tiles.busy_samples_per_cell(g) for g in grids.values()] == [0.5, None]  # not below the map's
 
     rng = np.random.default_rng(5)
-    monkeypatch.setattr(tiles, "FULL_UPDATE_NODES", 1)  # the 3 nodes: a large update, thinned
+    monkeypatch.setattr(tile_updates, "FULL_UPDATE_NODES", 1)  # the 3 nodes: a large update, thinned
     scans = [
         ScanMessage(
             "f",
