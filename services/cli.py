@@ -207,7 +207,7 @@ def cmd_router(args) -> int:
 
 
 def cmd_agent(args) -> int:
-    from services.agent.agent import run_agent
+    from services.agent.run import run_agent
 
     _logging(args.verbose)
     config = resolve_config(args)

@@ -1,70 +1,36 @@
-"""`gmmap agent`: fit a robot's scans, publish them and its pose-graph updates until acknowledged.
-
-Every message goes to the outbox (committed) before it is published; a resender thread
-republishes what has gone unanswered, so after a server restart or a reconnect everything gets
-through. The resend timeout follows the measured Ack round trip (TCP's estimator, RFC 6298,
-never below `resend_s`) and doubles with every further sending of a message: a server that is
-slow but alive is not buried in copies of what it is still storing. The Zenoh session (client
-mode) opens in the background: a robot out of reach keeps fitting and filling its outbox. A
-finite source ends when the outbox is empty.
+"""A robot's agent: fit its scans and send them and its pose-graph updates to the map server until
+acknowledged (delivery.py). A robot process embeds one (Agent.open, add_scan, correct: see
+examples/); `gmmap agent` runs one over a whole source (run.py).
 """
 
 from __future__ import annotations
 
-import logging
-import sys
-import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
 import zenoh
 
 from gmm_core import FitConfig, Pose, fit_scan
-from protocol import (
-    Ack,
-    PoseGraphUpdate,
-    ProtocolError,
-    Rejection,
-    ScanMessage,
-    StoreInventory,
-    ack_key,
-    decode,
-    encode,
-    inventory_key,
-    poses_key,
-    scan_key,
-)
-from services.config import GmmapConfig, summary
+from protocol import PoseGraphUpdate, ScanMessage, encode, poses_key, scan_key
+from services.config import GmmapConfig
 from services.datasets.keyframes import KeyframeConfig, KeyframeFilter
 from services.sim.trajectory import ClosureSchedule
 from services.zenoh_config import zenoh_config
 
 from .config import AgentConfig
+from .delivery import Delivery
 from .outbox import Outbox
 from .sent_poses import SentPoses, beam_reach
-from .sources import (
-    FixedCorrections,
-    Node,
-    RelaxingCorrections,
-    SimulatedNodes,
-    default_update_every,
-    is_simulated,
-    load_nodes,
-)
+from .sources import FixedCorrections, Node, RelaxingCorrections, SimulatedNodes, is_simulated
 
-log = logging.getLogger("gmmap.agent")
-
-# s without any answer while messages are in flight before they count as lost (a server that is
-# slow but answering is never resent to; one that restarted is seen at once by its subscription)
-SILENCE_S = 10.0
 # Refusals that every later scan would get too: the robot's quota is used up; the map has the other
 # dimension (for good).
 REFUSES_EVERY_SCAN = ("quota", "dimension")
 
 
-class Agent:
+class Agent(Delivery):
     def __init__(
         self,
         options: AgentConfig,
@@ -73,206 +39,14 @@ class Agent:
         fit: FitConfig = FitConfig(),
         keyframe: KeyframeConfig = KeyframeConfig(),
     ):
-        self.options = options
         self.fit = fit
-        self.outbox = outbox
-        self._owns_outbox = False  # Agent.open made it, so close closes it
         self._keyframes = KeyframeFilter(keyframe)
-        self.session: zenoh.Session | None = None  # set once connected
-        self._ack_subscriber = None
-        self._send_lock = threading.Lock()  # one publisher at a time keeps scans before updates
-        self._session_lock = threading.Lock()  # exactly one of _connect and close closes the session
-        self._changed = threading.Condition()
-        self.refused: Rejection | None = None  # the server's last refusal for good, if any
         self.unsent = 0  # scans not published because of a refusal
         self.kept = 0  # nodes of publish_all's source that the keyframe policy kept
         self.resumed = 0  # of those, the ones a previous run of this outbox got through (or held): not fitted again
         self._sent_poses = SentPoses()  # what the server holds of each node's pose, and the node's reach
-        self.store: str | None = None  # the store this agent reports to, from its inventory
-        # {store that had acknowledged them: messages sent again}, because the store reported to lacked them
-        self.requeued: dict[str, int] = {}
-        self.lost: set[int] = set()  # acknowledged nodes the store lacks and whose bytes are gone: refit
-        self.refitted = 0  # of those, fitted again from the source
-        self._reconciled = threading.Event()  # set once the store's inventory was compared with the outbox
-        self._store_changed = threading.Event()  # an Ack named another store: compare again
-        self._srtt: float | None = None  # smoothed Ack round trip and its mean deviation, s
-        self._rttvar = 0.0
-        self._stop = threading.Event()
-        self._room = threading.Event()  # set by Acks: the resender refills the window
-        self._last_heard = 0.0  # time.time() of the server's last answer
-        self._probe = None  # a publisher on our scan keys, for the server's presence
-        self._server_gone = False
-        self._acked_sent = 0.0  # when the latest-sent acknowledged message was sent
-        self._connector = threading.Thread(target=self._connect, args=(config,), name="gmmap-connect", daemon=True)
-        self._resender = threading.Thread(target=self._resend_loop, name="gmmap-resend", daemon=True)
-        self._connector.start()
-        self._resender.start()
-
-    # -- connection ----------------------------------------------------------------------------
-    def _connect(self, config: zenoh.Config) -> None:
-        session = zenoh.open(config)  # blocks until a server or router answers
-        o = self.options
-        self._ack_subscriber = session.declare_subscriber(ack_key(o.fleet, o.robot), self._on_ack)
-        if not self._wait_for_server(session, max(o.resend_s, 2.0)):
-            log.warning("connected, but no map server of fleet %s seen yet; the outbox resends", o.fleet)
-        with self._session_lock:
-            self.session = session
-            closed = self._stop.is_set()  # close() ran while we were connecting
-        if closed:
-            self._close_session()
-        else:
-            self._store_changed.set()  # the resender asks the store for its inventory
-
-    def reconcile(self) -> bool:
-        """Ask the store for what it holds of this robot and put back into the outbox what it lacks;
-        False if no store answered. Run at connection and whenever an Ack names another store."""
-        o = self.options
-        session = self.session
-        if session is None:
-            return False
-        inventory = None
-        for reply in session.get(inventory_key(o.fleet, o.robot), timeout=max(o.resend_s, 2.0)):
-            if reply.ok is None:
-                continue
-            try:
-                inventory = decode(reply.ok.payload.to_bytes(), expect=StoreInventory, max_bytes=1 << 24)
-            except ProtocolError as error:
-                log.warning("ignored a malformed inventory: %s", error)
-        if inventory is None:
-            return False
-        requeued, lost = self.outbox.requeue_missing(inventory, inventory.revision)
-        if requeued or lost:
-            log.warning(
-                "store %s lacks %d acknowledged messages: sending them again; %d more are no longer kept",
-                inventory.store,
-                sum(requeued.values()) + len(lost),
-                len(lost),
-            )
-        for store, count in requeued.items():
-            self.requeued[store] = self.requeued.get(store, 0) + count
-        self.lost |= lost
-        self.store = inventory.store
-        self._reconciled.set()
-        with self._changed:
-            self._changed.notify_all()
-        return True
-
-    def wait_reconciled(self, timeout: float) -> bool:
-        return self._reconciled.wait(timeout)
-
-    def _wait_for_server(self, session: zenoh.Session, timeout: float) -> bool:
-        """Wait until a subscriber of our scans is known, at most `timeout` s.
-
-        Puts before that are dropped by Zenoh, and so are Acks sent before our Ack subscriber
-        reached the server; either would wait a resend period. The probe stays: its matching
-        status tells the resender when the server went away and came back.
-        """
-        self._probe = session.declare_publisher(scan_key(self.options.fleet, self.options.robot, 0))
-        deadline = time.monotonic() + timeout
-        while not self._probe.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.01)
-        self._last_heard = time.time()  # silence is counted from here
-        return self._probe.matching_status.matching
-
-    def _server_returned(self) -> bool:
-        """True once after the server's subscriber vanished and came back (a restart, a lost link):
-        what was in flight to it may have died in its queue."""
-        matched = self._probe is not None and self._probe.matching_status.matching
-        returned = matched and self._server_gone
-        self._server_gone = not matched
-        return returned
-
-    # -- sending -------------------------------------------------------------------------------
-    def send(self, kind: str, ident: int, key: str, raw: bytes) -> None:
-        """Keep the message (committed first: a crash from here on resends it) and publish what the
-        window allows; the rest waits in the outbox for Acks to make room."""
-        self.outbox.add(kind, ident, key, raw)
-        self._fill_window()
-
-    def _fill_window(self) -> None:
-        """Publish unsent messages while fewer than `window` are unanswered (flow control: a server
-        that falls behind gets no more than it can queue, and the outbox holds the rest)."""
-        with self._send_lock:
-            room = self.options.window - self.outbox.in_flight()
-            if room > 0:
-                self._publish(self.outbox.unsent(room))
-
-    def _publish(self, items) -> None:
-        """Put `items` on the wire (caller holds the send lock)."""
-        session = self.session
-        if session is None or not items:
-            return  # offline: sent once connected
-        for _, _, key, raw in items:
-            # BLOCK: wait for room in the link's queue rather than drop a scan.
-            session.put(key, raw, congestion_control=zenoh.CongestionControl.BLOCK)
-        self.outbox.mark_sent([(kind, ident) for kind, ident, _, _ in items])
-
-    def _resend_loop(self) -> None:
-        while not self._stop.is_set():
-            self._room.wait(self.options.resend_s / 2)  # an Ack made room, or time to look again
-            self._room.clear()
-            if self.session is None:
-                continue
-            if self._store_changed.is_set():
-                self._store_changed.clear()
-                if not self.reconcile():
-                    self._store_changed.set()  # no store answered yet: ask again next round
-            now, timeout = time.time(), self.resend_timeout()
-            returned = self._server_returned()
-            silent = returned or now - self._last_heard >= max(timeout, SILENCE_S)
-            with self._send_lock:
-                due = self.outbox.due(now, 0.0 if returned else timeout, silent, self._acked_sent)
-                if due:
-                    log.info("sending %d unacknowledged messages again", len(due))
-                    self._publish(due)
-            self._fill_window()
-
-    def resend_timeout(self) -> float:
-        """Seconds an unanswered message waits before its second sending."""
-        if self._srtt is None:
-            return self.options.resend_s
-        return max(self.options.resend_s, self._srtt + 4 * self._rttvar)
-
-    def _measured(self, round_trip: float) -> None:
-        if self._srtt is None:
-            self._srtt, self._rttvar = round_trip, round_trip / 2
-        else:
-            self._rttvar = 0.75 * self._rttvar + 0.25 * abs(self._srtt - round_trip)
-            self._srtt = 0.875 * self._srtt + 0.125 * round_trip
-
-    def _on_ack(self, sample: zenoh.Sample) -> None:
-        try:
-            answer = decode(sample.payload.to_bytes())
-            if not isinstance(answer, (Ack, Rejection)):
-                raise ProtocolError("type", f"expected Ack or Rejection, got {type(answer).__name__}")
-        except ProtocolError as error:
-            log.warning("ignored a malformed ack: %s", error)
-            return
-        if answer.robot != self.options.robot or answer.fleet != self.options.fleet:
-            return
-        self._last_heard = time.time()
-        if isinstance(answer, Rejection):  # refused for good: stop resending, report at the end
-            if self.outbox.reject(answer.kind, answer.ids, answer.reason, answer.detail):
-                log.error(
-                    "the server refused %d message(s) of kind %s: %s: %s",
-                    len(answer.ids),
-                    answer.kind,
-                    answer.reason,
-                    answer.detail,
-                )
-            self.refused = answer
-        else:
-            if answer.store != self.store:  # a restarted server on a new data dir, or another server
-                self._store_changed.set()
-            round_trips, latest = self.outbox.acknowledge(answer.kind, answer.ids, answer.store)
-            for round_trip in round_trips:
-                self._measured(round_trip)
-            self._acked_sent = max(self._acked_sent, latest)
-            if answer.queued:  # received and queued by a busy server: not lost, wait for it
-                self.outbox.mark_sent([(answer.kind, i) for i in answer.queued], again=False)
-        self._room.set()
-        with self._changed:
-            self._changed.notify_all()
+        self.refitted = 0  # of the acknowledged nodes the store lacks and whose bytes are gone, fitted again
+        super().__init__(options, outbox, config)  # last: it starts the connector and the resender
 
     # -- the embeddable API -------------------------------------------------------------------
     @classmethod
@@ -454,45 +228,6 @@ class Agent:
             self._send_node(node)
         return len(again)
 
-    def wait_acknowledged(self, timeout: float) -> int:
-        """Block until a store's inventory was compared with the outbox and the outbox is empty, or
-        `timeout` s pass without an acknowledgement (a slow server that is working through a robot's
-        backlog keeps it waiting); returns what is still pending (at least 1 while no store answered)."""
-        deadline = time.monotonic() + timeout
-        last = None
-        with self._changed:
-            while (pending := self._unconfirmed()) and time.monotonic() < deadline:
-                if last is not None and pending < last:
-                    deadline = time.monotonic() + timeout  # progress: the server is alive
-                last = pending
-                self._changed.wait(min(0.5, max(0.0, deadline - time.monotonic())))
-        return pending
-
-    def _unconfirmed(self) -> int:
-        pending = self.outbox.pending()
-        return pending if self._reconciled.is_set() and not self._store_changed.is_set() else max(pending, 1)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._room.set()
-        self._resender.join()
-        with self._session_lock:
-            connected = self.session is not None
-        if connected:
-            self._close_session()
-        # else: the connector is still blocked in zenoh.open (nothing reachable); it is a daemon
-        if self._owns_outbox:
-            self.outbox.close()
-
-    def _close_session(self) -> None:
-        if self._probe is not None:
-            self._probe.undeclare()
-            self._probe = None
-        if self._ack_subscriber is not None:
-            self._ack_subscriber.undeclare()  # callback subscribers outlive their Python reference
-            self._ack_subscriber = None
-        self.session.close()
-
 
 def _points(name: str, a, dim: int) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
@@ -503,99 +238,6 @@ def _points(name: str, a, dim: int) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _requeued(agent: Agent) -> str:
-    """What the store lacked of what earlier stores acknowledged, for the summary line."""
-    parts = [f"sent again {n} acknowledged by store {s or '(unnamed, protocol v1)'}" for s, n in agent.requeued.items()]
-    if agent.refitted:
-        parts.append(f"{agent.refitted} scans no longer kept were fitted again")
-    if agent.lost:
-        parts.append(f"{len(agent.lost)} scans no longer kept are lost")
-    if not parts:
-        return ""
-    lacked = sum(agent.requeued.values()) + agent.refitted + len(agent.lost)
-    return f" (the store lacked {lacked} acknowledged messages: {'; '.join(parts)})"
-
-
 def closure_schedule(nodes: Sequence[Node] | SimulatedNodes, update_every: int) -> ClosureSchedule:
     """When a source's back end closes loops: a simulated robot's own schedule, else every `update_every` scans."""
     return nodes.closures if isinstance(nodes, SimulatedNodes) else ClosureSchedule(update_every)
-
-
-def run_agent(
-    o: AgentConfig,
-    fit: FitConfig,
-    keyframe: KeyframeConfig,
-    nodes: Sequence[Node] | SimulatedNodes | None = None,
-    ready: Callable[[], None] | None = None,
-) -> int:
-    """Run one agent until its source is published and acknowledged; the process exit code.
-
-    `nodes`: the source's nodes when the caller built them (else read from `o.source`); `ready`:
-    with it, every node is fitted ahead (Agent.prepare) and `ready()` is called, which returns when
-    publishing may start (a simulated fleet starts its timed run once every robot is prepared).
-    """
-    o.check_runnable()
-    started = time.perf_counter()
-    print(f"gmmap agent {o.robot} config: {summary(agent=o, fit=fit, keyframe=keyframe)}", file=sys.stderr, flush=True)
-    if o.update_every is None:
-        o = replace(o, update_every=default_update_every(o.source, o.rate))
-    if nodes is None:
-        nodes = load_nodes(
-            o.source, o.corrections, o.scans, rate=o.rate, update_every=o.update_every, **o.reader_options()
-        )
-    if o.odometry_only:  # a robot without a SLAM back end: same nodes, odometry stays final
-        nodes = [replace(n, corrected=None) for n in nodes]
-    outbox = Outbox(o.outbox_path, o.fleet, o.robot, o.keep_acked_bytes)
-    agent = Agent(o, outbox, zenoh_config("client", connect=o.zenoh_connect, config_file=o.zenoh_config), fit, keyframe)
-    try:
-        from tqdm import tqdm
-
-        closures = closure_schedule(nodes, o.update_every)  # of the source: prepared nodes are a list
-        if ready is not None:
-            with tqdm(total=len(nodes), desc=f"{o.robot} prepare", unit="scan", file=sys.stderr, leave=False) as bar:
-                nodes = agent.prepare(nodes, bar.update)
-            ready()
-            started = time.perf_counter()
-        # Against the store's inventory first, when it answers soon: what it lacks is sent again.
-        agent.wait_reconciled(min(o.timeout, 5.0))
-        with tqdm(total=len(nodes), desc=f"{o.robot} publish", unit="scan", file=sys.stderr, leave=False) as bar:
-            updates = agent.publish_all(nodes, bar.update, closures)
-        reconciled = agent.wait_reconciled(o.timeout)
-        if reconciled:  # a store that answered late may lack what is no longer kept
-            agent.refit(nodes)
-        published = time.perf_counter()
-        # no store answered within the timeout: say so now rather than wait a second one
-        pending = agent.wait_acknowledged(o.timeout if reconciled else 0.0)
-        if pending:
-            print(
-                f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; "
-                f"they stay in {outbox.path} and are resent by the next run "
-                f"(is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)",
-                file=sys.stderr,
-                flush=True,
-            )
-            return 1
-        refused = outbox.rejected()
-        if refused:
-            print(
-                f"gmmap agent {o.robot}: the server refused {len(refused)} messages for good "
-                f"({refused[-1][2]}: {refused[-1][3]}); they are not stored and not resent "
-                f"(listed in table `rejected` of {outbox.path}); {agent.unsent} scans were not published",
-                file=sys.stderr,
-                flush=True,
-            )
-            return 3
-        resumed = f" ({agent.resumed} of them from a previous run: resumed)" if agent.resumed else ""
-        skipped = f" (keyframes of {len(nodes)} read)" if agent.kept < len(nodes) else ""
-        print(
-            f"gmmap agent {o.robot}: {agent.kept} scans{skipped}{resumed} and {updates} pose-graph updates "
-            f"acknowledged by store {agent.store}{_requeued(agent)}; "
-            f"published after {published - started:.1f} s, all acknowledged after "
-            f"{time.perf_counter() - started:.1f} s",
-            file=sys.stderr,
-            flush=True,
-        )
-        return 0
-    finally:
-        agent.close()
-        outbox.close()

@@ -19,8 +19,8 @@ import threading
 import time
 from pathlib import Path
 
-from services.agent.agent import run_agent
 from services.agent.config import AgentConfig
+from services.agent.run import run_agent
 from services.agent.sources import simulated_nodes
 from services.config import load_config
 from services.datasets.keyframes import KeyframeConfig
