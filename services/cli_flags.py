@@ -49,6 +49,22 @@ def _negative_number_list(text: str) -> bool:
     return True
 
 
+def floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def fleet_id(text: str) -> str:
+    from protocol import ProtocolError, check_id
+
+    try:
+        return check_id(text, "id")
+    except ProtocolError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def setting(p: argparse.ArgumentParser, flag: str, key: str, **kwargs) -> None:
     """A flag that sets field `key` ("section.field") of the configuration; its default is the
     section's own, shown in the help, and applies only when neither the flag nor --config sets it."""

@@ -8,7 +8,8 @@ import subprocess
 import pytest
 import yaml
 
-from services.cli import build_parser, resolve_config
+from services.cli import build_parser
+from services.cli_flags import resolve_config
 from services.sim.fleet import SimSource
 from support.paths import ROOT
 

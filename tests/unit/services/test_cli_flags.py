@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from services import cli
-from services.cli_flags import joined_number_lists
+from services.cli_flags import joined_number_lists, resolve_config
 
 
 def parsed(*argv: str):
@@ -15,7 +15,7 @@ def parsed(*argv: str):
 
 def test_number_lists_may_begin_with_a_negative_number_as_separate_arguments():
     server = parsed("server", "--ros-map", "/map", "--ros-map-z", "-1,2", "--ros-map-resolution", "0.2")
-    assert cli.resolve_config(server).ros2.z_band == (-1.0, 2.0)
+    assert resolve_config(server).ros2.z_band == (-1.0, 2.0)
     replay = parsed("replay", "scans.xyz", "--bbox", "-5,-5,-1,5,5,2", "--origin", "-1,0,0.5")
     assert replay.bbox == [-5.0, -5.0, -1.0, 5.0, 5.0, 2.0] and replay.origin == [-1.0, 0.0, 0.5]
     export = parsed("export", "--from", "map.npz", "--format", "pgm", "--bbox", "-5,-5.5,5,5", "--out", "m")

@@ -13,6 +13,7 @@ from gmm_core import FitConfig
 from gmm_core.reconstruct import ReconstructionConfig
 from gmm_core.scan import DENSE_3D_COMPONENT_SIZE
 from services import cli
+from services.cli_flags import resolve_config
 from services.config import ConfigError, GmmapConfig, load_config
 from services.zenoh_config import DEFAULT_ENDPOINT
 from support.paths import ROOT
@@ -20,7 +21,7 @@ from support.paths import ROOT
 
 def resolved(*argv: str) -> GmmapConfig:
     """The configuration a `gmmap` command line resolves to."""
-    return cli.resolve_config(cli.build_parser().parse_args(list(argv)))
+    return resolve_config(cli.build_parser().parse_args(list(argv)))
 
 
 def test_defaults_are_the_sections_own():

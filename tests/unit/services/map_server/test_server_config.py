@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services import cli
+from services.cli_flags import resolve_config
 from services.config import ConfigError, load_config
 from services.map_server.config import ServerConfig, is_loopback, split_address
 
@@ -12,7 +13,7 @@ SECURE = {"http_tls_cert": "cert.pem", "http_tls_key": "key.pem", "http_tokens":
 
 
 def resolved(*argv: str) -> ServerConfig:
-    return cli.resolve_config(cli.build_parser().parse_args(["server", *argv])).server
+    return resolve_config(cli.build_parser().parse_args(["server", *argv])).server
 
 
 @pytest.mark.parametrize(
