@@ -6,7 +6,7 @@ degrade"). A part of TileCache (tiles.py).
 from __future__ import annotations
 
 from .tile_state import Tile, TileAnswer, age_of
-from .tracers import TracersSaturated
+from .tracers import TracersSaturated, TracingStopped
 
 COALESCE_S = 0.5  # under load, a state this young ...
 COALESCE_CHANGES = 16  # ... with at most this many changes since is served instead of updated
@@ -31,6 +31,7 @@ class ServingPolicy:
         while an update starts in the background. So under load a request never waits for an
         update that a previous state can stand in for; with idle tracers it updates the tile itself,
         or, patient, starts the update in the background and waits for it while its patience lasts.
+        Once the cache is closed, a request that would start a background update raises TracingStopped.
         """
         if tile.prob is None:
             return None
@@ -42,9 +43,9 @@ class ServingPolicy:
             if waited:
                 return self._answer(tile, 0.0, "updated")
             self._hits += 1
-            if tile.unrefined and not (tile.refreshing or tile.lock.locked()) and self._tracers.load().idle:
-                tile.refreshing = True  # refined in the background while the tracers are idle
-                self._refresher.submit(self._refresh, tile)
+            refinable = tile.unrefined and not (tile.refreshing or tile.lock.locked() or self._closed)
+            if refinable and self._tracers.load().idle:
+                self._refresh_later(tile)  # refined in the background while the tracers are idle
             return self._answer(tile, 0.0, "fresh")
         age = age_of(tile)
         if age > max_age or max_age <= 0:
@@ -58,16 +59,23 @@ class ServingPolicy:
         if not (load.busy or load.saturated):
             if not patient:
                 return None
-            tile.refreshing = True
-            self._refresher.submit(self._refresh, tile)
+            self._refresh_later(tile)
             return WAIT
         if not load.saturated and age <= COALESCE_S and tile.changes - tile.prob_at <= COALESCE_CHANGES:
             self._coalesced += 1
             return self._answer(tile, age, "coalesced")
-        tile.refreshing = True
-        self._refresher.submit(self._refresh, tile)
+        self._refresh_later(tile)
         self._stale += 1
         return self._answer(tile, age, "stale")
+
+    def _refresh_later(self, tile: Tile) -> None:
+        """Update `tile` in the background (`_refresh`). Under the map's lock, as `close` sets `_closed`:
+        once the cache is closed, TracingStopped (a stopping server answers 503 with Retry-After), where
+        the closed pool's RuntimeError "cannot schedule new futures after shutdown" was a 500."""
+        if self._closed:
+            raise TracingStopped()
+        tile.refreshing = True
+        self._refresher.submit(self._refresh, tile)
 
     def _answer(self, tile: Tile, age: float, kind: str) -> TileAnswer:
         """The tile's state as served. Under the map's lock."""

@@ -86,6 +86,7 @@ class TileCache(TileSet, TileUpdates, ServingPolicy):
         self._tracers = tracers
         # Background updates (`_refresh`): one per tracer thread at a time, each tracing on the pool.
         self._refresher = ThreadPoolExecutor(tracers.threads, "gmmap-refresh")
+        self._closed = False  # by `close`, under the lock: no more background updates
         self.prior = prior
         self.samples_per_cell = samples_per_cell
         self.report_slow = report_slow
@@ -113,7 +114,10 @@ class TileCache(TileSet, TileUpdates, ServingPolicy):
         return self._busy_samples_per_cell[grid.dim]
 
     def close(self) -> None:
-        """No more background updates (the tracers are closed by their owner)."""
+        """No more background updates (the tracers are closed by their owner): a request that would start
+        one raises TracingStopped."""
+        with self._lock:
+            self._closed = True
         self._refresher.shutdown(wait=False, cancel_futures=True)
 
     def occupancy(self, grid: Grid, robots: Sequence[str] | None = None) -> np.ndarray:

@@ -25,6 +25,7 @@ from support.uvicorn_thread import Server
 
 ORIGIN = "http://viewer.example"
 KINDS = ("fresh", "updated", "stale", "coalesced", "shed")  # of gmmap_tile_answers_total
+STOPPING = {"detail": "the map server is stopping", "field": None, "reason": "server_stopping", "retry_after": 1}
 
 
 @pytest.fixture(scope="module")
@@ -140,10 +141,29 @@ def test_requests_whose_traces_a_stop_cuts_off_are_503_with_retry_after_and_log_
             points_answer = queued.result()
     finally:
         uvicorn_log.removeHandler(caplog.handler)
-    stopping = {"detail": "the map server is stopping", "field": None, "reason": "server_stopping", "retry_after": 1}
     for status, headers, body in tile_answers:
-        assert (status, headers["Retry-After"], json.loads(body)) == (503, "1", stopping)
-    assert (points_answer[0], json.loads(points_answer[1])) == (503, stopping)
+        assert (status, headers["Retry-After"], json.loads(body)) == (503, "1", STOPPING)
+    assert (points_answer[0], json.loads(points_answer[1])) == (503, STOPPING)
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+
+
+def test_a_tile_out_of_date_when_the_server_stops_is_503_with_retry_after_and_logs_no_traceback(
+    server, messages, caplog
+):
+    """A cached tile that a scan made out of date, asked for after the stop closed the map: its update
+    would run in the background, which the closed map refuses (503), not 500 "cannot schedule new
+    futures after shutdown" with a traceback."""
+    uvicorn_log = logging.getLogger("uvicorn.error")  # uvicorn's logger: it does not propagate to caplog's
+    uvicorn_log.addHandler(caplog.handler)
+    tile = f"{server.url}/v1/occupancy?bbox=-6,-10,2,-2&resolution=0.1"
+    try:
+        assert get(tile)[0] == 200
+        server.fleet_map.add_scan(messages[20])
+        server.fleet_map.close()
+        status, headers, body = get(tile)
+    finally:
+        uvicorn_log.removeHandler(caplog.handler)
+    assert (status, headers["Retry-After"], json.loads(body)) == (503, "1", STOPPING)
     assert not caplog.records, [r.getMessage() for r in caplog.records]
 
 

@@ -12,8 +12,8 @@ from gmm_core.occupancy import DEFAULT_PRIOR, map_estimate, monte_carlo_estimate
 from protocol import PoseGraphUpdate, ScanMessage
 from services.map_server import tile_serving, tile_set, tile_state, tile_updates, tiles
 from services.map_server.fleet_map import FleetMap
-from services.map_server.tiles import MAX_STALE_S, TileCache
-from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated
+from services.map_server.tiles import MAX_STALE_S, PATIENCE_S, TileCache
+from services.map_server.tracers import TracerLoad, TracerPool, TracersSaturated, TracingStopped
 from support.fuzz import scan_like_mixture
 from support.ingest import scan_of
 from support.net import wait_for
@@ -154,19 +154,25 @@ def test_saturated_tracers_shed_what_would_trace_serve_what_they_can_and_recover
     assert fleet.cache_stats()["trace_queued"] == 0
 
 
-@pytest.mark.parametrize(
-    "load, saturated, retry_after",
-    [
-        (TracerLoad(2, 15, 2, 0.9), False, 1),
-        (TracerLoad(2, 16, 2, 0.0), True, 1),  # the queue bound, with no part timed yet
-        (TracerLoad(2, 3, 2, 1.0), True, 1),  # the wait bound
-        (TracerLoad(2, 3, 2, 2.3), True, 3),
-    ],
-)
-def test_saturation_and_retry_after_follow_the_queue_and_its_estimated_wait(load, saturated, retry_after):
-    assert load.saturated is saturated and load.busy
-    assert TracersSaturated(load).retry_after == retry_after
-    assert not TracerLoad(2, 0, 1, 0.0).busy
+def test_an_out_of_date_tile_asked_for_after_close_is_tracing_stopped(messages, monkeypatch):
+    """After close (a stopping server) a request whose tile would be updated in the background, with
+    idle tracers (patient) or busy ones, raises TracingStopped (503 over HTTP), not the refresher's
+    RuntimeError "cannot schedule new futures after shutdown" (500); an up-to-date tile is still served,
+    without the refinement idle tracers would start."""
+    monkeypatch.setattr(tile_updates, "FULL_UPDATE_NODES", 10)
+    fleet = fleet_of(messages[:20], busy_samples_per_cell=1.0)
+    fleet.occupancy(GRID)
+    fleet.add_scan(messages[20])
+    fresh = Grid(GRID.origin + 0.05, GRID.resolution, GRID.shape)  # off the lattice: a tile of its own
+    assert fleet.occupancy_answer(fresh, patience=0.0).samples_per_cell == 1.0  # 21 nodes: thinned
+    fleet.close()
+    assert (fleet.occupancy_answer(fresh).kind, fleet.cache_stats()["trace_queued"]) == ("fresh", 0)
+    with pytest.raises(TracingStopped):
+        fleet.occupancy_answer(GRID, patience=PATIENCE_S)
+    monkeypatch.setattr(TracerPool, "load", lambda pool: TracerLoad(pool.threads, 0, pool.threads, 0.0))
+    time.sleep(tile_serving.COALESCE_S)  # too old to coalesce
+    with pytest.raises(TracingStopped):
+        fleet.occupancy_answer(GRID)
 
 
 def test_updates_begun_while_the_tracers_are_busy_thin_the_samples_and_idle_tracers_refine_them(messages, monkeypatch):

@@ -1,6 +1,7 @@
 """The tracer pool's threads yield the cores to ingest and HTTP (tracers.TRACER_NICE), and its
 background traces to the others (tracers.BACKGROUND_MAX_WAIT_S); an interactive trace alone runs on
-every thread."""
+every thread; a load is saturated, and a shed request told when to ask again, by the queue and its
+estimated wait."""
 
 import os
 import sys
@@ -12,7 +13,7 @@ import pytest
 
 from gmm_core import Grid
 from services.map_server import tracers
-from services.map_server.tracers import TRACER_NICE, TracerPool, TracersSaturated
+from services.map_server.tracers import TRACER_NICE, TracerLoad, TracerPool, TracersSaturated
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="per-thread nice values are Linux's")
@@ -136,3 +137,19 @@ def test_the_wait_of_a_queue_is_unknown_until_a_part_was_timed_then_estimated_fr
             assert refusal.startswith("tracers saturated: 2 traces queued for 1 tracer thread (")
     finally:
         pool.close()
+
+
+@pytest.mark.parametrize(
+    "load, saturated, retry_after",
+    [
+        (TracerLoad(2, 15, 2, 0.9), False, 1),
+        (TracerLoad(2, 16, 2, 0.0), True, 1),  # the queue bound, its parts timed at no wait
+        (TracerLoad(2, 16, 2, None), True, 1),  # the queue bound, with no part timed yet (wait unknown)
+        (TracerLoad(2, 3, 2, 1.0), True, 1),  # the wait bound
+        (TracerLoad(2, 3, 2, 2.3), True, 3),
+    ],
+)
+def test_saturation_and_retry_after_follow_the_queue_and_its_estimated_wait(load, saturated, retry_after):
+    assert load.saturated is saturated and load.busy
+    assert TracersSaturated(load).retry_after == retry_after
+    assert not TracerLoad(2, 0, 1, 0.0).busy
