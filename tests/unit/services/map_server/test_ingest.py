@@ -17,6 +17,7 @@ from services.map_server.fleet_map import FleetMap
 from services.map_server.ingest import Ingest
 from services.map_server.state import ServerState
 from services.map_server.store import Store
+from services.map_server.tracers import TracerPool
 from support.ingest import ingested, key_of, scan_of, stored_bytes
 
 
@@ -74,16 +75,30 @@ def test_scans_waiting_in_the_queue_are_announced_until_stored(tmp_path, model, 
         ingest.stop()
 
 
-def test_tracers_wait_while_a_batch_is_ingested(model):
+def test_tracers_wait_while_a_batch_is_ingested(model, monkeypatch):
+    """A trace begun while ingest holds the tracers waits at its first node until the batch is done,
+    then ends with the counts it would have had. Its kernels are compiled (or loaded) by the same trace
+    before the hold, and the hold is timed from the moment the tracer reaches it: compiling on a cold
+    numba cache took longer than the 10 s this test once gave the whole trace."""
     fleet = FleetMap("default", trace_threads=1)
     for node in range(4):
         fleet.add_scan(scan(model, node))
     grid = Grid.from_bbox([0.0, -2.0], [4.0, 2.0], 0.1)
-    done = threading.Event()
+    unheld = fleet.counts(grid)
+    held, done, answers = threading.Event(), threading.Event(), []
+    wait_for_ingest = TracerPool._wait_for_ingest
+
+    def reached(pool):
+        held.set()
+        wait_for_ingest(pool)
+
+    monkeypatch.setattr(TracerPool, "_wait_for_ingest", reached)
     with fleet.ingest_first():
-        threading.Thread(target=lambda: (fleet.counts(grid), done.set()), daemon=True).start()
-        assert not done.wait(0.5)
-    assert done.wait(10)
+        threading.Thread(target=lambda: (answers.append(fleet.counts(grid)), done.set()), daemon=True).start()
+        assert held.wait(60)  # the tracer is at the hold ...
+        assert not done.wait(0.5)  # ... and stays there while the batch is ingested (traced, it takes ms)
+    assert done.wait(60)
+    np.testing.assert_array_equal(answers[0], unheld)
 
 
 def test_a_batch_holds_the_tracers_only_when_its_oldest_message_waited(tmp_path, model, monkeypatch):
