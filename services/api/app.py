@@ -169,6 +169,8 @@ def create_app(
         if first.get("type") == "json_invalid":  # FastAPI's loc is ("body", the character where parsing stopped)
             where = f"{first['ctx']['error']} at character {first['loc'][-1]}"
             return error(400, None, f"the body is not valid JSON: {where}")
+        if first.get("type") == "missing" and tuple(first.get("loc", ())) == ("body",):
+            return error(422, None, "the body is empty: a JSON object is required, as the OpenAPI schema gives it")
         loc = [str(p) for p in first.get("loc", ()) if p not in ("query", "path", "body")]
         return error(422, ".".join(loc) or None, first.get("msg", "invalid request"))
 

@@ -285,6 +285,11 @@ def test_a_body_that_is_not_json_is_400_saying_where_it_breaks(server, body, why
     assert status == 400 and json.loads(reply) == {"detail": f"the body is not valid JSON: {why}", "field": None}
 
 
+def test_an_empty_body_is_422_saying_the_body_is_empty(server):
+    status, reply = post_bytes(f"{server.url}/v1/occupancy/points", b"")
+    assert status == 422 and json.loads(reply)["detail"].startswith("the body is empty"), reply
+
+
 def test_too_many_points_by_post(server, fleet_map):
     status, body = post(f"{server.url}/v1/occupancy/points", {"points": [[0, 0]] * 10_001, "resolution": 0.1})
     assert status == 422 and "10,000" in json.loads(body)["detail"]
