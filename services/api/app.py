@@ -195,11 +195,7 @@ def create_app(
         selected = who.select(params.robots(names))
         if names is None:
             return selected  # a limited token's robots may not have sent anything yet
-        if not selected:
-            raise ApiError("robots", "name at least one robot, or leave robots out to read every robot")
-        if unknown := fmap.unknown_robots(selected):
-            raise ApiError("robots", f"no robot {', '.join(unknown)} in fleet {state.fleet!r}", status=404)
-        return selected
+        return params.named_robots(selected, fmap.unknown_robots, state.fleet)
 
     def occupancy_of(grid, robots, max_age: float = MAX_STALE_S):
         try:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 
 import numpy as np
 
@@ -112,6 +113,18 @@ def robots(selection: str | list[str] | None) -> tuple[str, ...] | None:
         return tuple(sorted({check_id(n, "robots") for n in names}))
     except ProtocolError as e:
         raise ApiError("robots", e.message) from None
+
+
+def named_robots(
+    selected: tuple[str, ...], unknown_of: Callable[[tuple[str, ...]], list[str]], fleet: str
+) -> tuple[str, ...]:
+    """Robots a request names: some, each one the fleet has had a scan or a pose graph from
+    (`unknown_of` lists the others): a name mistyped is refused (404), not answered with a blank map."""
+    if not selected:
+        raise ApiError("robots", "name at least one robot, or leave robots out to read every robot")
+    if unknown := unknown_of(selected):
+        raise ApiError("robots", f"no robot {', '.join(unknown)} in fleet {fleet!r}", status=404)
+    return selected
 
 
 def robot(name: str) -> str:

@@ -82,15 +82,13 @@ def _query_of(state: ServerState, payload: bytes, kind: type):
 
 
 def _selected(state: ServerState, robots: tuple[str, ...] | None) -> tuple[str, ...] | None:
-    """The robots a query names (None: every robot): some, each one the fleet has had a scan or a pose
-    graph from, as the HTTP API has them (a name mistyped is refused, not answered with a blank map)."""
+    """The robots a query names (None: every robot), refused as the HTTP API refuses them."""
     if robots is None:
         return None
-    if not robots:
-        raise ProtocolError("robots", "name at least one robot, or leave robots out to read every robot")
-    if unknown := state.fleet_map.unknown_robots(robots):
-        raise ProtocolError("robots", f"no robot {', '.join(unknown)} in fleet {state.fleet!r}")
-    return robots
+    try:
+        return params.named_robots(robots, state.fleet_map.unknown_robots, state.fleet)
+    except params.ApiError as error:
+        raise ProtocolError(error.field, error.message) from None
 
 
 def answer(state: ServerState, payload: bytes) -> bytes:
