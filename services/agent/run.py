@@ -16,6 +16,7 @@ from services.zenoh_config import zenoh_config
 from .agent import Agent, closure_schedule
 from .config import AgentConfig
 from .outbox import Outbox
+from .outcome import run_outcome
 from .sources import Node, SimulatedNodes, default_update_every, load_nodes
 
 
@@ -39,7 +40,8 @@ def run_agent(
     nodes: Sequence[Node] | SimulatedNodes | None = None,
     ready: Callable[[], None] | None = None,
 ) -> int:
-    """Run one agent until its source is published and acknowledged; the process exit code.
+    """Run one agent until its source is published and acknowledged; the process exit code: 0, 1 if
+    messages are not acknowledged within the timeout, 3 if the server refused some for good (outcome.py).
 
     `nodes`: the source's nodes when the caller built them (else read from `o.source`); `ready`:
     with it, every node is fitted ahead (Agent.prepare) and `ready()` is called, which returns when
@@ -77,36 +79,16 @@ def run_agent(
         published = time.perf_counter()
         # no store answered within the timeout: say so now rather than wait a second one
         pending = agent.wait_acknowledged(o.timeout if reconciled else 0.0)
-        if pending:
-            print(
-                f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; "
-                f"they stay in {outbox.path} and are resent by the next run "
-                f"(is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)",
-                file=sys.stderr,
-                flush=True,
-            )
-            return 1
-        refused = outbox.rejected()
-        if refused:
-            print(
-                f"gmmap agent {o.robot}: the server refused {len(refused)} messages for good "
-                f"({refused[-1][2]}: {refused[-1][3]}); they are not stored and not resent "
-                f"(listed in table `rejected` of {outbox.path}); {agent.unsent} scans were not published",
-                file=sys.stderr,
-                flush=True,
-            )
-            return 3
         resumed = f" ({agent.resumed} of them from a previous run: resumed)" if agent.resumed else ""
         skipped = f" (keyframes of {len(nodes)} read)" if agent.kept < len(nodes) else ""
-        print(
-            f"gmmap agent {o.robot}: {agent.kept} scans{skipped}{resumed} and {updates} pose-graph updates "
+        success = (
+            f"{agent.kept} scans{skipped}{resumed} and {updates} pose-graph updates "
             f"acknowledged by store {agent.store}{_requeued(agent)}; "
             f"published after {published - started:.1f} s, all acknowledged after "
-            f"{time.perf_counter() - started:.1f} s",
-            file=sys.stderr,
-            flush=True,
+            f"{time.perf_counter() - started:.1f} s"
         )
-        return 0
+        hint = f" (is a server for fleet {o.fleet!r} reachable at {','.join(o.zenoh_connect)}?)"
+        return run_outcome(agent, pending, success, hint)
     finally:
         agent.close()
         outbox.close()

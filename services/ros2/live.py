@@ -33,6 +33,7 @@ import zenoh.ext
 
 from gmm_core.pose import Pose
 from services.agent.agent import Agent
+from services.agent.outcome import run_outcome
 from services.config import GmmapConfig, summary
 from services.datasets.common import DatasetError, split_points
 from services.datasets.ros_messages import (
@@ -295,7 +296,9 @@ def _open_session(config: zenoh.Config, stop: StopSignal) -> zenoh.Session | Non
 
 def run_ros2_agent(config: GmmapConfig) -> int:
     """`gmmap agent --source ros2` until SIGINT/SIGTERM; 0 once all is acknowledged, 1 if the
-    timeout passes with messages still held in the outbox."""
+    timeout passes with messages still held in the outbox, 3 if the server refused messages for
+    good (a 3D scan in a 2D fleet, a robot over its quota: table `rejected` of the outbox); the
+    same outcome as a file source's (services.agent.outcome)."""
     o, ros = config.agent, config.ros2
     if o.scan_topic is None:
         raise ValueError("agent.scan_topic: --source ros2 needs --scan-topic (a LaserScan or PointCloud2 topic)")
@@ -339,16 +342,7 @@ def run_ros2_agent(config: GmmapConfig) -> int:
                 file=sys.stderr,
                 flush=True,
             )
-        if pending:
-            print(
-                f"gmmap agent {o.robot}: {pending} messages not acknowledged after {o.timeout:.0f} s; they stay in "
-                f"{agent.outbox.path} and are resent by the next run",
-                file=sys.stderr,
-                flush=True,
-            )
-            return 1
         store = f"by store {agent.store}" if agent.store else "(nothing was held)"
-        print(f"gmmap agent {o.robot}: all acknowledged {store}", file=sys.stderr, flush=True)
-        return 0
+        return run_outcome(agent, pending, f"all acknowledged {store}")
     finally:
         agent.close()

@@ -18,14 +18,18 @@ from gmm_core.occupancy import classify, map_estimate
 from gmm_core.reconstruct import reconstruct
 from gmm_core.sampling import scan_seed
 from protocol import ScanMessage, decode
+from services.agent.agent import Agent
+from services.agent.config import AgentConfig
 from services.cli import main
+from services.config import GmmapConfig
+from services.datasets.keyframes import KeyframeConfig
 from services.map_server.store import read_graph
 from services.zenoh_config import zenoh_config
 from support.net import free_port, get, http_get, wait_for
 from support.paths import ROOT
-from support.processes import EVERY_SCAN, store_db, stored_nodes, written_nodes
+from support.processes import EVERY_SCAN, rejected_nodes, store_db, stored_nodes, written_nodes
 from support.ros2_robot import MOUNT, OCCUPANCY_GRID, PATH, MapSubscriber, RosRobot, intel_topics, laser_3d
-from support.rosbags_written import ODOMETRY, write_bag
+from support.rosbags_written import ODOMETRY, POINT_CLOUD2, TF, RosMessages, write_bag
 
 SCANS = 60
 RESOLUTION = 0.1
@@ -68,8 +72,6 @@ def stored_map(data, grid: Grid, poses: dict[int, Pose] | None = None) -> np.nda
 
 def replayed(tmp_path, name: str, intel, poses: np.ndarray, grid: Grid) -> np.ndarray:
     """`gmmap replay` of a ROS 2 bag of the same scans and /tf_static with odometry at `poses`."""
-    from support.rosbags_written import RosMessages
-
     m = RosMessages("sqlite3")
     messages = [intel.static]
     for (_, scan), (x, y, theta), stamp in zip(intel.steps, poses, intel.stamps):
@@ -351,3 +353,41 @@ def test_without_a_server_the_agent_stops_with_1_and_what_it_holds(procs, intel,
     agent.send_signal(signal.SIGTERM)
     assert procs.finish(agent, 60) == 1, procs.log(agent)
     assert "3 messages not acknowledged after 2 s" in procs.log(agent), procs.log(agent)
+
+
+def test_a_3d_robot_in_a_2d_fleet_is_refused_and_the_agent_exits_3_saying_so(procs, tmp_path):
+    """The server refuses the robot's PointCloud2 scans for good (its fleet's map is 2D): at its stop
+    the agent says so after its counts, in the words of a file source, and exits 3, not 0."""
+    router, data = f"tcp/127.0.0.1:{free_port()}", tmp_path / "data"
+    procs.ready(procs.start("router", "router", "--listen", router), "gmmap router ready")
+    procs.server("server", data, None, free_port(), "--zenoh-connect", router)
+    rng = np.random.default_rng(0)
+    flat = AgentConfig(robot="flat", zenoh_connect=(router,), outbox=str(tmp_path / "flat.db"))
+    with Agent.open(GmmapConfig(agent=flat, keyframe=KeyframeConfig.every_scan())) as agent:  # the map is 2D
+        assert agent.add_scan(rng.normal(size=(100, 2)) + [3.0, 0.0], None, Pose.identity(2), 0.0) == 0
+        assert agent.flush(60) == 0
+    outbox = tmp_path / "outbox.db"
+    ros_args = ["--source", "ros2", "--scan-topic", "/scan", "--outbox", str(outbox), "--timeout", "30"]
+    agent = procs.start("agent", "agent", "--robot", "solid", "--zenoh-connect", router, *ros_args, *EVERY_SCAN)
+    procs.wait_ready("agent", "ros2 ready", 180)  # a loaded machine takes its time
+    session = zenoh.open(zenoh_config("client", connect=[router]))
+    robot, m = RosRobot(session, "rmw_zenoh"), RosMessages("sqlite3")
+    try:
+        robot.publish("/tf_static", TF, m.tf([(0.0, "base_link", "laser", MOUNT)]))
+        robot.publish("/tf", TF, m.tf([(s, "odom", "base_link", laser_3d(s, 0.0, 0.0)) for s in (1.0, 3.0)]))
+        cloud = (rng.normal(size=(400, 3)) + [5.0, 0.0, 0.0]).astype(np.float32)
+        xyz = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+        robot.publish("/scan", POINT_CLOUD2, m.point_cloud(2.0, "laser", cloud.tobytes(), xyz, 12, len(cloud)))
+        wait_for(lambda: rejected_nodes(outbox) == {0}, 60, "the 3D scan refused")
+    finally:
+        robot.close()
+        session.close()
+    agent.send_signal(signal.SIGINT)
+    assert procs.finish(agent, 60) == 3, procs.log(agent)
+    counts, refused = procs.log(agent).strip().splitlines()[-2:]
+    assert "ros2 stopped: 3 samples, 1 nodes, 0 pose-graph updates; 0 scans dropped" in counts, counts
+    assert refused == (
+        "gmmap agent solid: the server refused 1 messages for good (dimension: this map is 2D, the message is 3D); "
+        f"they are not stored and not resent (listed in table `rejected` of {outbox}); 0 scans were not published"
+    )
+    assert stored_nodes(data, "solid") == set() and stored_nodes(data, "flat") == {0}

@@ -96,6 +96,11 @@ def written_nodes(outbox: Path) -> set[int]:
     return _scans_in(outbox, "SELECT id FROM acked WHERE kind = 'scan' UNION SELECT id FROM outbox WHERE kind = 'scan'")
 
 
+def rejected_nodes(outbox: Path) -> set[int]:
+    """Scans the server refused for good to the agent of `outbox` (its table `rejected`)."""
+    return _scans_in(outbox, "SELECT id FROM rejected WHERE kind = 'scan'")
+
+
 def _scans_in(outbox: Path, query: str) -> set[int]:
     db = sqlite3.connect(f"file:{outbox}?mode=ro", uri=True, timeout=10)
     try:
