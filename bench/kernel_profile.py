@@ -77,13 +77,14 @@ def merge_workload() -> tuple[object, Callable[[], None]]:
     config = load_config().fit.for_dimension(3)
     points = np.ascontiguousarray(read("balm")[3].hits)
     shift = points[0].copy()
-    sums, keys = voxels._voxel_statistics(points, config.voxel_size, shift, config.voxel_near_range)
+    finest, tiers, _ = voxels.voxel_tiers(config.voxel_size, config.voxel_fine_range, config.voxel_near_range)
+    sums, keys = voxels._voxel_statistics(points, finest, shift, tiers)
     k = min(
         config.n_components_of_count(len(points), 3),
-        voxels._count_cells(keys, 3, round(config.component_size / config.voxel_size)),
+        voxels._count_cells(keys, 3, round(config.component_size / finest)),
     )
     costed = rings.with_footprint(sums, -shift, rings.ring_spacing(points))
-    eu, ev = voxel_merge._voxel_edges(keys, config.voxel_size, config.voxel_near_range)
+    eu, ev = voxel_merge._voxel_edges(keys, finest, tiers)
     inputs = [(costed.copy(), eu.copy(), ev.copy()) for _ in range(301)]  # _merge changes its inputs
     voxel_merge._merge(*inputs.pop(), k, config.reg_covar)  # compiled or loaded: dump_kernel reads its code
 

@@ -43,14 +43,15 @@ def stage_times(points: np.ndarray, config) -> list[float]:
     """Seconds of each of STAGES but the fit on one scan's points."""
     clock = [time.perf_counter()]
     shift = points[0].copy()
-    sums, keys = voxels._voxel_statistics(points, config.voxel_size, shift, config.voxel_near_range)
+    finest, tiers, _ = voxels.voxel_tiers(config.voxel_size, config.voxel_fine_range, config.voxel_near_range)
+    sums, keys = voxels._voxel_statistics(points, finest, shift, tiers)
     clock.append(time.perf_counter())
-    ratio = round(config.component_size / config.voxel_size)
+    ratio = round(config.component_size / finest)
     k = min(config.n_components_of_count(len(points), 3), voxels._count_cells(keys, 3, ratio))
     clock.append(time.perf_counter())
     costed = rings.with_footprint(sums, -shift, rings.ring_spacing(points))
     clock.append(time.perf_counter())
-    eu, ev = voxel_merge._voxel_edges(keys, config.voxel_size, config.voxel_near_range)
+    eu, ev = voxel_merge._voxel_edges(keys, finest, tiers)
     clock.append(time.perf_counter())
     voxel_merge._pieces(len(keys), eu, ev)
     clock.append(time.perf_counter())

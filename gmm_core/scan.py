@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 
@@ -10,6 +11,8 @@ from gmm_core.em import fit_mixture
 from gmm_core.mixture import Mixture
 from gmm_core.validation import require_count, require_number
 from gmm_core.voxel_em import count_voxels, fit_mixture_voxels
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -50,13 +53,24 @@ POINTS_PER_COMPONENT = 3.0  # a 2D scan's points per component (Sec. IV-C)
 DENSE_3D_POINTS_PER_COMPONENT = 30.0
 DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per square metre of surface
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
-# EM passes over those voxels after they are merged into groups (voxel_merge): none. The groups
-# alone end 0.12-0.49 nats a point above 8 over-relaxed passes from the old top-down split, and
-# above scikit-learn's converged EM on whole BALM scans; a pass gains 0.004-0.03 for about 2 ms
-# (docs/BENCHMARKS.md, twenty-second session).
-DENSE_3D_VOXEL_MAX_ITER = 0
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
+# m: within this range, voxels of half the size, and within half of it a quarter, where the points
+# are densest: a log-likelihood a point of +0.184 nats on Kurt3D (57 % of its points within 2 m),
+# +0.007 on BALM; 3 m instead: BALM's fit 1.25x slower (docs/BENCHMARKS.md, thirty-seventh session).
+DENSE_3D_VOXEL_FINE_RANGE = 2.5
+# EM passes over the voxels after they are merged into groups (voxel_merge), on the groups with a
+# voxel within DENSE_3D_VOXEL_EM_RANGE of the sensor. Over all the groups 8 passes gain 0.05 nats a
+# point on BALM for 1.9x the fit (the groups alone end above scikit-learn's converged EM there);
+# over those within the fine range, +0.011 on Kurt3D and its subsamples at scikit-learn's EM, for
+# 0.5 ms of BALM's 8 (docs/BENCHMARKS.md, twenty-second and thirty-seventh sessions).
+DENSE_3D_VOXEL_MAX_ITER = 8
+DENSE_3D_VOXEL_EM_RANGE = DENSE_3D_VOXEL_FINE_RANGE  # m
+
+
+def _given(value: T | None, default: T) -> T:
+    """A setting's value, its default where it is unset (None)."""
+    return default if value is None else value
 
 
 @dataclass(frozen=True)
@@ -72,14 +86,16 @@ class FitConfig:
     `DENSE_3D_POINTS_PER_COMPONENT` in 3D (which bounds a 3D message to a few per cent of its
     points' bytes); `component_size` None means none in 2D and `DENSE_3D_COMPONENT_SIZE` in 3D;
     `voxel_size` applies to 3D scans only (2D scans are fitted on their points) and None means
-    `DENSE_3D_VOXEL_SIZE`; `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`, and
-    `voxel_near_range` None `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that range from the sensor the
-    voxels are twice `voxel_size`, where a lidar's rings lie farther apart than a voxel.
+    `DENSE_3D_VOXEL_SIZE`; `voxel_near_range` None means `DENSE_3D_VOXEL_NEAR_RANGE`: beyond that
+    range from the sensor the voxels are twice `voxel_size`, where a lidar's rings lie farther
+    apart than a voxel; `voxel_fine_range` None means `DENSE_3D_VOXEL_FINE_RANGE`: within it they
+    are half `voxel_size`, within half of it a quarter, where the points are densest.
+    `voxel_max_iter` and `voxel_em_range` None mean `DENSE_3D_VOXEL_MAX_ITER` and `..._EM_RANGE`.
 
-    With `voxel_size` > 0, the voxels of that size are merged bottom-up into the components
-    (gmm_core.voxel_merge), then EM runs on their summed statistics for at most `voxel_max_iter`
-    passes (gmm_core.voxel_em): a 3D scan of 80k points in milliseconds. With 0, EM runs on the
-    points themselves (gmm_core.em).
+    With `voxel_size` > 0, the voxels are merged bottom-up into the components
+    (gmm_core.voxel_merge), then EM runs on the summed statistics of the voxels of the components
+    within `voxel_em_range` of the sensor for at most `voxel_max_iter` passes (gmm_core.voxel_em):
+    a 3D scan of 80k points in milliseconds. With 0, EM runs on the points themselves (gmm_core.em).
     """
 
     points_per_component: float | None = None  # > 0; None: POINTS_PER_COMPONENT in 2D, DENSE_3D_... in 3D
@@ -92,6 +108,8 @@ class FitConfig:
     voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 0; None: DENSE_3D_VOXEL_MAX_ITER
     voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
+    voxel_fine_range: float | None = None  # m, >= 0, < voxel_near_range: half voxel_size within, 0: none
+    voxel_em_range: float | None = None  # m, >= 0 (inf: every component): EM on the components within
 
     def __post_init__(self):
         for name in ("max_range", "reg_covar"):
@@ -109,6 +127,14 @@ class FitConfig:
             require_count("fit.voxel_max_iter", self.voxel_max_iter, minimum=0)
         if self.voxel_near_range is not None:
             require_number("fit.voxel_near_range", self.voxel_near_range, positive=True)
+        if self.voxel_fine_range is not None:
+            require_number("fit.voxel_fine_range", self.voxel_fine_range, positive=False)
+        if self.voxel_em_range is not None:
+            require_number("fit.voxel_em_range", self.voxel_em_range, positive=False, finite=False)
+        near = _given(self.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE)
+        fine = _given(self.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE)
+        if not fine < near:
+            raise ValueError(f"fit.voxel_fine_range: must be less than fit.voxel_near_range ({near} m), got {fine} m")
 
     def for_dimension(self, dim: int) -> FitConfig:
         """This configuration as it applies to scans of dimension `dim` (2 or 3)."""
@@ -118,8 +144,10 @@ class FitConfig:
             points_per_component=self._points_per_component(dim),
             component_size=DENSE_3D_COMPONENT_SIZE if self.component_size is None and dim == 3 else self.component_size,
             voxel_size=voxel_size if dim == 3 else 0.0,
-            voxel_max_iter=DENSE_3D_VOXEL_MAX_ITER if self.voxel_max_iter is None else self.voxel_max_iter,
-            voxel_near_range=DENSE_3D_VOXEL_NEAR_RANGE if self.voxel_near_range is None else self.voxel_near_range,
+            voxel_max_iter=_given(self.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER),
+            voxel_near_range=_given(self.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE),
+            voxel_fine_range=_given(self.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE),
+            voxel_em_range=_given(self.voxel_em_range, DENSE_3D_VOXEL_EM_RANGE),
         )
         return self if resolved == self else resolved
 
@@ -156,17 +184,17 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
 
     def fit(points: np.ndarray) -> Mixture:
         if config.voxel_size:
-            passes = DENSE_3D_VOXEL_MAX_ITER if config.voxel_max_iter is None else config.voxel_max_iter
-            max_iter = min(config.max_iter, passes)
             return fit_mixture_voxels(
                 points,
                 config.n_components_of_count(len(points), dim),
                 config.voxel_size,
                 cell_size=config.component_size,
-                near_range=config.voxel_near_range or DENSE_3D_VOXEL_NEAR_RANGE,
+                near_range=_given(config.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE),
+                fine_range=_given(config.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE),
                 reg_covar=config.reg_covar,
-                max_iter=max_iter,
+                max_iter=min(config.max_iter, _given(config.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER)),
                 tol=config.tol,
+                em_range=_given(config.voxel_em_range, DENSE_3D_VOXEL_EM_RANGE),
             )
         k = config.n_components(points)
         return fit_mixture(points, k, reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)

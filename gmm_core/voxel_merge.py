@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from gmm_core.selection import kth_smallest
-from gmm_core.voxels import _FAR_BIT, _KEY_BITS, _KEY_OFFSET, _lookup, _numbered, _table_of
+from gmm_core.voxels import _KEY_BITS, _KEY_OFFSET, _LEVEL_SHIFT, _lookup, _numbered, _table_of
 
 # Each round merges at most this share of the merges still to make: 0.1 / 0.25 / 0.5 / 1 gave a
 # log-likelihood per point of -1.849 / -1.849 / -1.861 / -1.966 on BALM #0 in 8.4 / 7.1 / 6.6 /
@@ -45,7 +45,7 @@ _MERGE_SHARE = 0.25
 # merging: the cheapest merges across a gap are then taken in their turn, not after each piece
 # has been merged into one group.
 _BRIDGED_PIECES = 0.25
-# ... in cells of at most 2^this near voxels (2 m at 0.25 m): pieces farther apart are separate
+# ... in cells of at most 2^this base voxels (2 m at 0.25 m): pieces farther apart are separate
 # things, bridged only while they outnumber K. A bridge between two single points is cheap however
 # long it is (two points make a line of no width), so a bridge between far pieces could join two
 # objects (5 blobs 11-40 m apart, each with a few stray points: two joined at level 8;
@@ -131,37 +131,41 @@ def _merged(sums, a, b, reg):
 
 @njit(cache=True, inline="always")
 def _cell(keys, v, level):
-    """The (x, y, z) of voxel v in units of near voxels (a far voxel: its lowest corner), shifted
-    right by `level` (cells of 2^level near voxels)."""
+    """The (x, y, z) of voxel v in units of the finest voxels (a larger voxel: its lowest corner),
+    shifted right by `level` (cells of 2^level finest voxels)."""
     key = keys[v]
-    far = key >> _FAR_BIT
-    x = (((key >> (2 * _KEY_BITS)) & _MASK) - _KEY_OFFSET) << far
-    y = (((key >> _KEY_BITS) & _MASK) - _KEY_OFFSET) << far
-    z = ((key & _MASK) - _KEY_OFFSET) << far
+    own = key >> _LEVEL_SHIFT
+    x = (((key >> (2 * _KEY_BITS)) & _MASK) - _KEY_OFFSET) << own
+    y = (((key >> _KEY_BITS) & _MASK) - _KEY_OFFSET) << own
+    z = ((key & _MASK) - _KEY_OFFSET) << own
     return x >> level, y >> level, z >> level
 
 
 @njit(cache=True, inline="always")
-def _key_of(x, y, z, far):
+def _key_of(x, y, z, level):
     return (((x + _KEY_OFFSET) << (2 * _KEY_BITS)) + ((y + _KEY_OFFSET) << _KEY_BITS) + z + _KEY_OFFSET) + (
-        far << _FAR_BIT
+        level << _LEVEL_SHIFT
     )
 
 
 @njit(cache=True)
-def _voxel_edges(keys, voxel_size, near_range):
+def _voxel_edges(keys, voxel_size, tier_ranges):
     """Pairs of neighbouring voxels (eu, ev): the 18 neighbours of a voxel (sharing a face or an
     edge) among those of its size, an edge neighbour only where no voxel shares a face with both
-    (_FACE_PATHS), and, for a near voxel at the near range, the far voxels it touches; a voxel with
-    none of these, to the nearest voxel of its size within two."""
+    (_FACE_PATHS), and, for a voxel at the outer range of its tier (`tier_ranges`, voxels of
+    `voxel_size` within the first), the voxels of the next tier it touches; a voxel with none of
+    these, to the nearest voxel of its size within two."""
     m = keys.shape[0]
     table, shift = _table_of(keys)
-    # at most 9 forward neighbours, 8 far voxels and 1 nearest a voxel; the pages never written
-    # cost nothing (an array assigned in the loop, to grow it, would cost numba a reference count)
+    # at most 9 forward neighbours, 8 voxels of the next tier and 1 nearest a voxel; the pages never
+    # written cost nothing (an array assigned in the loop, to grow it, would cost numba a reference count)
     eu = np.empty(18 * m, dtype=np.int32)
     ev = np.empty(18 * m, dtype=np.int32)
     n = 0
-    boundary = max(near_range - 2.0 * np.sqrt(3.0) * voxel_size, 0.0)
+    # a voxel's centre this far inside its tier's outer range may touch a voxel of the next tier
+    boundary = np.empty(tier_ranges.shape[0])
+    for level in range(tier_ranges.shape[0]):
+        boundary[level] = max(tier_ranges[level] - 2.0 * np.sqrt(3.0) * voxel_size * (1 << level), 0.0)
     touched = np.empty(8, dtype=np.int64)
     for v in range(m):
         for d in range(_FORWARD.shape[0]):
@@ -176,14 +180,17 @@ def _voxel_edges(keys, voxel_size, near_range):
                 continue
             eu[n], ev[n] = v, u
             n += 1
-        if keys[v] >> _FAR_BIT == 0:
-            c = _cell(keys, v, 0)
-            r2 = ((c[0] + 0.5) ** 2 + (c[1] + 0.5) ** 2 + (c[2] + 0.5) ** 2) * voxel_size * voxel_size
-            if r2 >= boundary * boundary:
+        level = keys[v] >> _LEVEL_SHIFT
+        if level < tier_ranges.shape[0]:
+            c = _cell(keys, v, level)  # in its own voxels
+            size = voxel_size * (1 << level)
+            r2 = ((c[0] + 0.5) ** 2 + (c[1] + 0.5) ** 2 + (c[2] + 0.5) ** 2) * size * size
+            if r2 >= boundary[level] * boundary[level]:
                 count = 0
                 for d in range(27):
                     dx, dy, dz = d // 9 - 1, (d // 3) % 3 - 1, d % 3 - 1
-                    u = _lookup(table, shift, _key_of((c[0] + dx) >> 1, (c[1] + dy) >> 1, (c[2] + dz) >> 1, 1))
+                    up = _key_of((c[0] + dx) >> 1, (c[1] + dy) >> 1, (c[2] + dz) >> 1, level + 1)
+                    u = _lookup(table, shift, up)
                     if u < 0 or _listed(touched, count, u):
                         continue
                     touched[count] = u
@@ -245,7 +252,7 @@ def _root(root, v):
 @njit(cache=True)
 def _bridges(keys, piece, n_pieces, level):
     """Edges between pieces (`piece` of each voxel, 0 .. n_pieces - 1) with voxels in one cell of
-    2^level near voxels or in two neighbouring ones: one edge a pair of pieces, between the first
+    2^level finest voxels or in two neighbouring ones: one edge a pair of pieces, between the first
     voxels of each piece in such cells."""
     m = keys.shape[0]
     cell_keys = np.empty(m, dtype=np.int64)
@@ -449,17 +456,18 @@ def _merge(sums, eu, ev, n_groups, reg_covar):
 
 
 @njit(cache=True)
-def merge_voxels(keys, sums, costed, n_groups, reg_covar, voxel_size, near_range):
+def merge_voxels(keys, sums, costed, n_groups, reg_covar, voxel_size, tier_ranges, base_level):
     """The summed statistics (G, 10) of at most `n_groups` groups of the voxels (`keys`, `sums`
-    as voxels._voxel_statistics gives them; voxels beyond `near_range` of twice `voxel_size`),
-    fewer only when there are fewer voxels. The merge costs are those of `costed` (the sums with
-    their footprint across a lidar's rings, rings.py; changed), the groups' statistics `sums`'."""
+    as voxels._voxel_statistics gives them with `voxel_size` and `tier_ranges`), fewer only when
+    there are fewer voxels, and each voxel's group (M,). The merge costs are those of `costed` (the
+    sums with their footprint across a lidar's rings, rings.py; changed), the groups' statistics
+    `sums`'. Pieces are bridged in cells of 2, 4, ... base voxels (2^base_level finest ones)."""
     m = keys.shape[0]
-    eu, ev = _voxel_edges(keys, voxel_size, near_range)
+    eu, ev = _voxel_edges(keys, voxel_size, tier_ranges)
     piece, n_pieces = _pieces(m, eu, ev)
-    level = 1
+    level = base_level + 1
     while level <= 2 * _KEY_BITS and (
-        n_pieces > n_groups or (n_pieces > _BRIDGED_PIECES * n_groups and level <= _BRIDGED_LEVELS)
+        n_pieces > n_groups or (n_pieces > _BRIDGED_PIECES * n_groups and level <= base_level + _BRIDGED_LEVELS)
     ):
         bu, bv = _bridges(keys, piece, n_pieces, level)
         eu, ev = np.concatenate((eu, bu)), np.concatenate((ev, bv))
@@ -474,6 +482,7 @@ def merge_voxels(keys, sums, costed, n_groups, reg_covar, voxel_size, near_range
             count += 1
     grouped = np.zeros((count, sums.shape[1]))
     for v in range(m):
+        group[v] = index[group[v]]
         for q in range(sums.shape[1]):
-            grouped[index[group[v]], q] += sums[v, q]
-    return grouped
+            grouped[group[v], q] += sums[v, q]
+    return grouped, group

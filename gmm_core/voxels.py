@@ -2,8 +2,9 @@
 [1, x, x x^T] of each voxel's points, the statistics the voxel fit works on (voxel_merge,
 voxel_em).
 
-Voxel coordinates are packed into one int64 key; points beyond a near range of the sensor fall in
-voxels of twice the size (there the scan's rings lie farther apart than a voxel).
+Voxel coordinates are packed into one int64 key with the voxel's level: the voxels double in size
+at each of a few ranges from the sensor (`tier_ranges`), where a scan's rings lie farther apart
+(the sensor's footprint grows with range).
 """
 
 from __future__ import annotations
@@ -12,9 +13,10 @@ import numpy as np
 from numba import njit
 
 # Voxel coordinates are packed into one int64 key, this many bits per axis (+-2^19 voxels from
-# the origin: +-26 km at 5 cm), and above them one bit for the far voxels of twice the size.
+# the origin: +-26 km at 5 cm), and above them the voxel's level l (its size 2^l the finest's;
+# at most FINE_LEVELS + 1 = 3: the key stays below 2^62).
 _KEY_BITS = 20
-_FAR_BIT = 3 * _KEY_BITS
+_LEVEL_SHIFT = 3 * _KEY_BITS
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _FIBONACCI_HASH = np.uint64(0x9E3779B97F4A7C15)
 _FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
@@ -24,26 +26,45 @@ _FIRST_TABLE_BITS = 10  # the hash table grows from 1024 slots
 _TABLE_LOAD = 4
 
 
+# Within the fine range of a voxel fit, voxels of half the size, and within half of it a quarter:
+# the voxel follows the sensor's footprint, which halves with the range. Kurt3D's 10,000-point
+# subsample, no EM pass: one tier (0.125 m within 3 m) 0.045 nats a point below scikit-learn's EM,
+# two 0.022, none 0.167 (docs/BENCHMARKS.md, thirty-seventh session).
+FINE_LEVELS = 2
+
+
+def voxel_tiers(voxel_size: float, fine_range: float, near_range: float) -> tuple[float, np.ndarray, int]:
+    """The finest voxel (m), the ranges at which voxels double (m, increasing) and the level of
+    `voxel_size` among them: voxels of `voxel_size` from `fine_range` to `near_range` (0 and inf:
+    none), of twice the size beyond, and FINE_LEVELS tiers of halved voxels within."""
+    fine = [fine_range / (1 << (FINE_LEVELS - 1 - level)) for level in range(FINE_LEVELS)] if fine_range > 0 else []
+    ranges = np.array(fine + ([near_range] if near_range < np.inf else []), dtype=np.float64)
+    if not fine_range < near_range:
+        raise ValueError(f"voxels: fine_range {fine_range} m must lie within near_range {near_range} m")
+    return voxel_size / (1 << len(fine)), ranges, len(fine)
+
+
 @njit(cache=True, inline="always")
-def _voxel_key(points, i, d, size, far_squared):
-    """Voxel floor(x_i / size) packed into one int64, _KEY_BITS per axis, offset by half their
-    range; beyond sqrt(far_squared) of the origin, the voxel floor(x_i / 2 size) with _FAR_BIT set.
-    `d`: the points' columns."""
+def _voxel_key(points, i, d, size, b0, b1, b2):
+    """Voxel floor(x_i / sizes[l]) packed into one int64, _KEY_BITS per axis, offset by half their
+    range, with its level l above them: l is how many of the squared ranges `bounds` (FINE_LEVELS
+    + 1 of them, increasing, inf where there is no such tier) x_i lies beyond. `d`: the points'
+    columns."""
     r2 = 0.0
     for a in range(d):
         r2 += points[i, a] * points[i, a]
     if not r2 < np.inf:  # NaN or inf in the point (em.checked_points' check, here at no extra pass)
         raise ValueError("voxels: points contain NaN or inf")
-    far = r2 > far_squared
-    if far:
-        size = 2.0 * size
+    # counted without a branch or a loop: a loop over the tiers made the sums 1.7x slower (BALM #3)
+    level = int(r2 > b0) + int(r2 > b1) + int(r2 > b2)
+    size = size * (1 << level)
     key = 0
     for a in range(d):
         c = int(np.floor(points[i, a] / size)) + _KEY_OFFSET
         if c < 0 or c >= 2 * _KEY_OFFSET:
             raise ValueError("voxels: a point lies more than 2^19 voxels from the origin")
         key = (key << _KEY_BITS) + c
-    return key + (1 << _FAR_BIT) if far else key
+    return key + (level << _LEVEL_SHIFT)
 
 
 @njit(cache=True)
@@ -140,7 +161,7 @@ def count_voxels(points, size):
     """How many voxels floor(x / size) the (n, d) points occupy (np.unique of them)."""
     keys = np.empty(points.shape[0], dtype=np.int64)
     for i in range(points.shape[0]):
-        keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf)
+        keys[i] = _voxel_key(points, i, points.shape[1], size, np.inf, np.inf, np.inf)
     return _numbered(keys)[1]
 
 
@@ -152,14 +173,17 @@ _BLOCK = 1024
 
 
 @njit(cache=True)
-def _voxel_statistics(points, voxel_size, shift, near_range):
-    """Per occupied voxel floor(x / voxel_size), or floor(x / 2 voxel_size) for points beyond
-    `near_range` of the origin, the sums of em._features of x - shift over its points (M, f) and
-    its key (M,), voxels in the order of their first point: one hash probe per point.
-    The voxels are those of the points' frame; `shift` (near the points) keeps the second moments
-    precise."""
+def _voxel_statistics(points, voxel_size, shift, tier_ranges):
+    """Per occupied voxel floor(x / (2^l voxel_size)), l the number of the increasing ranges
+    `tier_ranges` (m, as voxel_tiers gives them) the point lies beyond from the origin, the sums of
+    em._features of x - shift over its points (M, f) and its key (M,), voxels in the order of their
+    first point: one hash probe per point. The voxels are those of the points' frame; `shift` (near
+    the points) keeps the second moments precise."""
     n, d = points.shape
-    far_squared = near_range * near_range
+    if tier_ranges.shape[0] > FINE_LEVELS + 1:
+        raise ValueError("voxels: more tiers than voxel_tiers makes")
+    bounds = np.full(FINE_LEVELS + 1, np.inf)
+    bounds[: tier_ranges.shape[0]] = tier_ranges * tier_ranges
     # room for a voxel a point: the rows past the voxels' count are never written (nor faulted in)
     sums = np.empty((n, 1 + d + d * (d + 1) // 2))
     keys = np.empty(n, dtype=np.int64)
@@ -169,7 +193,7 @@ def _voxel_statistics(points, voxel_size, shift, near_range):
     count = 0
     for start in range(0, n, _BLOCK):
         stop = min(start + _BLOCK, n)
-        _block_keys(points, start, stop, voxel_size, far_squared, block_keys)
+        _block_keys(points, start, stop, voxel_size, bounds[0], bounds[1], bounds[2], block_keys)
         made = count
         i, size = 0, stop - start
         while i < size:
@@ -182,16 +206,16 @@ def _voxel_statistics(points, voxel_size, shift, near_range):
 
 
 @njit(cache=True)
-def _block_keys(points, start, stop, voxel_size, far_squared, out):
+def _block_keys(points, start, stop, size, b0, b1, b2, out):
     """The voxel keys of points start .. stop - 1 (out[0 .. stop - start - 1])."""
     # The dimension as a constant in each branch: the loops over the axes compile unrolled, 1.5x
     # faster than with the columns read from the array (docs/BENCHMARKS.md, tenth session).
     if points.shape[1] == 3:
         for i in range(start, stop):
-            out[i - start] = _voxel_key(points, i, 3, voxel_size, far_squared)
+            out[i - start] = _voxel_key(points, i, 3, size, b0, b1, b2)
     else:
         for i in range(start, stop):
-            out[i - start] = _voxel_key(points, i, 2, voxel_size, far_squared)
+            out[i - start] = _voxel_key(points, i, 2, size, b0, b1, b2)
 
 
 @njit(cache=True)
@@ -236,15 +260,15 @@ def _add_points(points, d, start, stop, shift, block_keys, numbers, made, sums, 
 
 @njit(cache=True)
 def _count_cells(keys, d, ratio):
-    """How many cells of `ratio` x `ratio` voxels (the grid of the voxel keys, d axes; `ratio`
-    even where far voxels of twice the size are among them) hold one of the voxels `keys`:
+    """How many cells of `ratio` x `ratio` finest voxels (the grid of the voxel keys, d axes;
+    `ratio` a multiple of 2^l where voxels of level l are among them) hold one of the voxels `keys`:
     count_voxels(points, ratio * voxel_size) from the voxels, not the points
     (floor(floor(x / s) / r) = floor(x / (r s)); exact in floating point when r and s are powers
     of two, as 4 and 0.25 m)."""
     mask = (1 << _KEY_BITS) - 1
     cells = np.empty(keys.shape[0], dtype=np.int64)
     for v in range(keys.shape[0]):
-        per_cell = ratio // 2 if keys[v] >> _FAR_BIT else ratio
+        per_cell = ratio >> (keys[v] >> _LEVEL_SHIFT)
         cell = 0
         for a in range(d):
             c = (keys[v] >> (_KEY_BITS * (d - 1 - a))) & mask

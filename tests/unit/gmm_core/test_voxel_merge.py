@@ -6,50 +6,57 @@ import functools
 from collections import defaultdict
 
 import numpy as np
+import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from gmm_core.voxel_merge import _MERGE_SHARE, _merge, _pieces, _voxel_edges, merge_voxels
-from gmm_core.voxels import _FAR_BIT, _KEY_BITS, _KEY_OFFSET, _voxel_statistics
+from gmm_core.voxels import _KEY_BITS, _KEY_OFFSET, _LEVEL_SHIFT, _voxel_statistics
+
+NO_TIERS = np.empty(0)  # one size of voxel
 
 
 def voxel_coordinates(keys):
-    """(x, y, z) of each key in its own voxel size, and whether it is a far voxel."""
+    """(x, y, z) of each key in its own voxel size, and its level (its size 2^level the finest's)."""
     mask = (1 << _KEY_BITS) - 1
     coords = np.column_stack([(keys >> (_KEY_BITS * (2 - a))) & mask for a in range(3)]) - _KEY_OFFSET
-    return coords, (keys >> _FAR_BIT).astype(bool)
+    return coords, keys >> _LEVEL_SHIFT
 
 
-def test_voxel_edges_are_the_neighbouring_voxels():
-    # Near voxels (0.5 m) within 4 m of the origin, far ones (1 m) beyond: neighbours among each
+@pytest.mark.parametrize("tiers", [[4.0], [2.0, 3.0, 5.0]])
+def test_voxel_edges_are_the_neighbouring_voxels(tiers):
+    # Voxels of 0.5 m within the first range of `tiers`, doubling at each: neighbours among each
     # size are the 18 around a voxel (a face or an edge in common), two with an edge in common only
-    # where no voxel has a face in common with both; a near voxel within 2 sqrt(3)
-    # voxels of the near range also touches the far voxels that hold one of its 26 neighbours' cells;
+    # where no voxel has a face in common with both; a voxel within 2 sqrt(3) voxels of its tier's
+    # outer range also touches the voxels of the next tier that hold one of its 26 neighbours' cells;
     # a voxel without any of these, its nearest within two voxels.
     rng = np.random.default_rng(3)
     points = rng.uniform(-7, 7, (700, 3))
-    size, near = 0.5, 4.0
-    _, keys = _voxel_statistics(points, size, np.zeros(3), near)
-    eu, ev = _voxel_edges(keys, size, near)
+    size, ranges = 0.5, np.array(tiers)
+    _, keys = _voxel_statistics(points, size, np.zeros(3), ranges)
+    eu, ev = _voxel_edges(keys, size, ranges)
     found = {tuple(sorted(pair)) for pair in zip(eu.tolist(), ev.tolist())}
     assert len(found) == len(eu)  # each pair once
-    coords, far = voxel_coordinates(keys)
-    occupied = {(tuple(c), f) for c, f in zip(coords.tolist(), far.tolist())}
+    coords, level = voxel_coordinates(keys)
+    occupied = {(tuple(c), f) for c, f in zip(coords.tolist(), level.tolist())}
     expected = set()
     for i in range(len(keys)):
         for j in range(i + 1, len(keys)):
-            if far[i] == far[j]:
+            if level[i] == level[j]:
                 step = coords[j] - coords[i]
                 # a voxel sharing a face with both: i moved along one of the step's two axes
                 between = [coords[i] + np.where(np.arange(3) == a, step, 0) for a in np.flatnonzero(step)]
-                face_path = step.dot(step) == 2 and any((tuple(b.tolist()), far[i]) in occupied for b in between)
+                face_path = step.dot(step) == 2 and any((tuple(b.tolist()), level[i]) in occupied for b in between)
                 if np.abs(step).max() == 1 and np.abs(step).sum() < 3 and not face_path:
                     expected.add((i, j))
                 continue
-            n, f = (i, j) if far[j] else (j, i)
-            centre = np.linalg.norm((coords[n] + 0.5) * size)
+            n, f = (i, j) if level[j] > level[i] else (j, i)
+            if level[f] != level[n] + 1:
+                continue
+            own = size * 2 ** level[n]
+            centre = np.linalg.norm((coords[n] + 0.5) * own)
             touches = ((2 * coords[f] - 1 <= coords[n]) & (coords[n] <= 2 * coords[f] + 2)).all()
-            if touches and centre >= near - 2 * np.sqrt(3) * size:
+            if touches and centre >= ranges[level[n]] - 2 * np.sqrt(3) * own:
                 expected.add((min(i, j), max(i, j)))
     # a voxel still without an edge, in order: one to the nearest of its size within two voxels
     # (ties in the order of (squared distance, dx, dy, dz))
@@ -60,12 +67,13 @@ def test_voxel_edges_are_the_neighbouring_voxels():
         offsets = sorted(
             (int(d @ d), *d.tolist(), j)
             for j in range(len(keys))
-            if far[j] == far[i] and np.abs(d := coords[j] - coords[i]).max() <= 2 and j != i
+            if level[j] == level[i] and np.abs(d := coords[j] - coords[i]).max() <= 2 and j != i
         )
         if offsets:
             expected.add((min(i, offsets[0][-1]), max(i, offsets[0][-1])))
             alone += 1
-    assert found == expected and far.any() and (~far).any() and alone > 10
+    assert found == expected, (sorted(found - expected)[:5], sorted(expected - found)[:5])
+    assert set(level.tolist()) == set(range(len(tiers) + 1)) and alone > 0
 
 
 def test_an_edge_neighbour_is_joined_only_where_no_face_path_is():
@@ -73,10 +81,10 @@ def test_an_edge_neighbour_is_joined_only_where_no_face_path_is():
     # whose faces join them both.
     size = 1.0
     corner = np.array([[0.5, 0.5, 0.5], [1.5, 1.5, 0.5]])
-    _, keys = _voxel_statistics(corner, size, np.zeros(3), np.inf)
-    assert len(_voxel_edges(keys, size, np.inf)[0]) == 1
-    _, keys = _voxel_statistics(np.vstack([corner, [1.5, 0.5, 0.5]]), size, np.zeros(3), np.inf)
-    eu, ev = _voxel_edges(keys, size, np.inf)
+    _, keys = _voxel_statistics(corner, size, np.zeros(3), NO_TIERS)
+    assert len(_voxel_edges(keys, size, NO_TIERS)[0]) == 1
+    _, keys = _voxel_statistics(np.vstack([corner, [1.5, 0.5, 0.5]]), size, np.zeros(3), NO_TIERS)
+    eu, ev = _voxel_edges(keys, size, NO_TIERS)
     assert sorted(map(sorted, zip(eu.tolist(), ev.tolist()))) == [[0, 2], [1, 2]]
 
 
@@ -146,8 +154,8 @@ def test_merge_is_the_plain_rounds_of_mutual_cheapest_pairs():
         u, w = rng.uniform(0, 2, (2, 600))
         sheet = np.column_stack([u, w, 0.3 * np.sin(3 * u) + rng.normal(0, 0.01, 600)])
         points = np.concatenate([sheet, rng.uniform(0, 2, (60, 3))])
-        sums, keys = _voxel_statistics(points, 0.2, points[0].copy(), np.inf)
-        eu, ev = _voxel_edges(keys, 0.2, np.inf)
+        sums, keys = _voxel_statistics(points, 0.2, points[0].copy(), NO_TIERS)
+        eu, ev = _voxel_edges(keys, 0.2, NO_TIERS)
         n_groups = [5, 20, 40, 80][trial]
         expected = reference_merge(sums, list(zip(eu.tolist(), ev.tolist())), n_groups, 1e-4)
         merged = sums.copy()
@@ -164,8 +172,9 @@ def test_two_planes_meeting_at_a_corner_become_two_groups():
     floor = np.column_stack([rng.uniform(0, 3, 4000), rng.uniform(0, 3, 4000), rng.normal(0, 0.01, 4000)])
     wall = floor[:, [2, 1, 0]]
     points = np.concatenate([floor, wall])
-    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), np.inf)
-    groups = merge_voxels(keys, sums, sums.copy(), 2, 1e-4, 0.25, np.inf)
+    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), NO_TIERS)
+    groups, group = merge_voxels(keys, sums, sums.copy(), 2, 1e-4, 0.25, NO_TIERS, 0)
+    assert np.allclose(groups, [sums[group == g].sum(axis=0) for g in range(2)])
     assert len(groups) == 2 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
     for g in groups:
         mean = g[1:4] / g[0]
@@ -179,12 +188,15 @@ def test_sparse_scan_is_bridged_to_k_groups():
     radii = np.repeat(np.arange(2.0, 30.0, 1.0), 150)
     angle = rng.uniform(0, 2 * np.pi, len(radii))
     points = np.column_stack([radii * np.cos(angle), radii * np.sin(angle), rng.normal(-1, 0.01, len(radii))])
-    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), 12.0)
-    eu, ev = _voxel_edges(keys, 0.25, 12.0)
+    tiers = np.array([12.0])
+    sums, keys = _voxel_statistics(points, 0.25, np.zeros(3), tiers)
+    eu, ev = _voxel_edges(keys, 0.25, tiers)
     assert _pieces(len(keys), eu, ev)[1] > 200
-    groups = merge_voxels(keys, sums, sums.copy(), 20, 1e-4, 0.25, 12.0)
+    groups, _ = merge_voxels(keys, sums, sums.copy(), 20, 1e-4, 0.25, tiers, 0)
     assert len(groups) == 20 and np.allclose(groups.sum(axis=0), sums.sum(axis=0))
-    assert len(merge_voxels(keys[:5], sums[:5], sums[:5].copy(), 20, 1e-4, 0.25, 12.0)) == 5  # fewer voxels than K
+    assert (
+        len(merge_voxels(keys[:5], sums[:5], sums[:5].copy(), 20, 1e-4, 0.25, tiers, 0)[0]) == 5
+    )  # fewer voxels than K
 
 
 def test_merge_of_a_star_compacts_its_rows_and_stays_the_plain_rounds():
