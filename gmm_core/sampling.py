@@ -250,7 +250,7 @@ class ScanSampler:
     _keys: dict[float, np.ndarray] = field(default_factory=dict, compare=False, repr=False)  # by resolution
 
     @staticmethod
-    def of(model: ScanModel, seed: int, samples_per_cell: float = 1.0) -> ScanSampler:
+    def of(model: ScanModel, seed: int, samples_per_cell: float) -> ScanSampler:
         return ScanSampler(
             MixtureSampler.of(model.occupied), MixtureSampler.of(model.free), model.origin, seed, samples_per_cell
         )
@@ -275,7 +275,7 @@ class ScanSampler:
         )
 
 
-def scan_samples(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0) -> ScanSamples:
+def scan_samples(model: ScanModel, resolution: float, seed: int, samples_per_cell: float) -> ScanSamples:
     """The samples of both mixtures of `model` at `resolution`, from `seed`: the same (model,
     resolution, seed), the same samples."""
     return ScanSampler.of(model, seed, samples_per_cell).at(resolution)
@@ -308,7 +308,7 @@ def draw(samples: MixtureSamples) -> tuple[np.ndarray, np.ndarray]:
     return _place(s.means, s.chol, s.counts, s.offsets, s.weights, s.key)
 
 
-def scan_rays(model: ScanModel, resolution: float, seed: int, samples_per_cell: float = 1.0):
+def scan_rays(model: ScanModel, resolution: float, seed: int, samples_per_cell: float):
     """Ray end points in the scan frame, their weights, and whether each ends in a hit.
 
     Samples of the occupied mixture end in a hit; samples of the free mixture (no-return
