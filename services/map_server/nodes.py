@@ -299,14 +299,17 @@ class NodeStore:
         One ingest batch at a time: the new nodes' world boxes are made per robot, and the index,
         the change log and the tiles are told once for the whole batch.
         """
+        dim = self.dim if self.dim is not None or not entries else entries[0].dim
+        for entry in entries:  # all of the batch or none of it: a scan held here is indexed below
+            if entry.dim != dim:
+                held = f"this map is {dim}D" if self.dim is not None else f"the batch's first scan is {dim}D"
+                raise ValueError(f"dimension: {held}, the scan is {entry.dim}D")
+        if self.dim is None and entries:
+            self.dim = dim
+            self._index = NodeIndex(dim)
         added: dict[str, list[Node]] = {}
         new = []
         for entry in entries:
-            if self.dim is None:
-                self.dim = entry.dim
-                self._index = NodeIndex(entry.dim)
-            elif entry.dim != self.dim:
-                raise ValueError(f"dimension: this map is {self.dim}D, the scan is {entry.dim}D")
             robot = self.robots.setdefault(entry.robot, Robot())
             robot.last_seen = time.time()
             robot.bytes_received += entry.size

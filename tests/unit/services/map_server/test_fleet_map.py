@@ -304,6 +304,23 @@ def test_dimension_mismatch_is_refused(fitted):
         fleet.occupancy(Grid.from_bbox([0, 0, 0], [1, 1, 1], 0.1))
 
 
+def test_a_batch_with_a_scan_of_the_other_dimension_changes_nothing(fitted):
+    # The whole batch is refused before any of it is held: a scan held from a refused batch would
+    # be neither indexed nor logged, and no tile would learn of it.
+    scans, models = fitted
+    flat = ScanMessage("f", "r1", 0, 0.0, models[0], scans[0].pose)
+    points = np.random.default_rng(0).uniform(-2, 2, (500, 3))
+    solid = ScanMessage("f", "r2", 0, 0.0, fit_scan(points, np.zeros((0, 3))), Pose.identity(3))
+    fleet = FleetMap("f")
+    with pytest.raises(ValueError, match="dimension"):
+        fleet.add_scans([(flat, 100, None), (solid, 100, None)])
+    assert fleet.dim is None and fleet.robots() == [] and fleet.extent() is None
+    assert fleet.add_scans([(flat, 100, None)]) == [True] and fleet.dim == 2
+    with pytest.raises(ValueError, match="dimension"):
+        fleet.add_scans([(ScanMessage("f", "r1", 1, 0.0, models[1], scans[1].pose), 100, None), (solid, 100, None)])
+    assert [r["nodes"] for r in fleet.robots()] == [1]
+
+
 def test_a_correction_that_arrives_before_its_scan_is_held(fitted):
     scans, models = fitted
     s, m = scans[5], models[5]
