@@ -46,16 +46,16 @@ def voxel_tiers(voxel_size: float, fine_range: float, near_range: float) -> tupl
 
 @njit(cache=True, inline="always")
 def _voxel_key(points, i, d, size, b0, b1, b2):
-    """Voxel floor(x_i / sizes[l]) packed into one int64, _KEY_BITS per axis, offset by half their
-    range, with its level l above them: l is how many of the squared ranges `bounds` (FINE_LEVELS
-    + 1 of them, increasing, inf where there is no such tier) x_i lies beyond. `d`: the points'
-    columns."""
+    """Voxel floor(x_i / (2^l size)) packed into one int64, _KEY_BITS per axis, offset by half their
+    range, with its level l above them: l is how many of the squared ranges b0 <= b1 <= b2 (inf
+    where there is no such tier) x_i lies beyond. `d`: the points' columns."""
     r2 = 0.0
     for a in range(d):
         r2 += points[i, a] * points[i, a]
     if not r2 < np.inf:  # NaN or inf in the point (em.checked_points' check, here at no extra pass)
         raise ValueError("voxels: points contain NaN or inf")
-    # counted without a branch or a loop: a loop over the tiers made the sums 1.7x slower (BALM #3)
+    # three scalars compared, no loop: with a loop over the bounds in an array, BALM #3's keys took
+    # 966 instead of 383 us (docs/BENCHMARKS.md, thirty-seventh session)
     level = int(r2 > b0) + int(r2 > b1) + int(r2 > b2)
     size = size * (1 << level)
     key = 0
