@@ -9,6 +9,7 @@ import numpy as np
 
 from gmm_core.em import fit_mixture
 from gmm_core.mixture import Mixture
+from gmm_core.rings import ring_spacing
 from gmm_core.validation import require_count, require_number
 from gmm_core.voxel_em import count_voxels, fit_mixture_voxels
 
@@ -55,15 +56,16 @@ DENSE_3D_COMPONENT_SIZE = 1.0  # m: a dense 3D scan gets about one component per
 DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this size (docs/BENCHMARKS.md, issue 15)
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
-# m: within this range, voxels of half the size, and within half of it a quarter, where the points
-# are densest: a log-likelihood a point of +0.184 nats on Kurt3D (57 % of its points within 2 m),
-# +0.007 on BALM; 3 m instead: BALM's fit 1.25x slower (docs/BENCHMARKS.md, thirty-seventh session).
+# m: within this range of a cloud without rings, voxels of half the size, and within half of it a
+# quarter, where the points are densest: a log-likelihood a point of +0.184 nats on Kurt3D (57 % of
+# its points within 2 m); 3 m instead: Kurt3D's guard no better on average, BALM's fit 1.25x slower
+# (docs/BENCHMARKS.md, thirty-seventh session).
 DENSE_3D_VOXEL_FINE_RANGE = 2.5
-# EM passes over the voxels after they are merged into groups (voxel_merge), on the groups with a
-# voxel within DENSE_3D_VOXEL_EM_RANGE of the sensor. Over all the groups 8 passes gain 0.05 nats a
-# point on BALM for 1.9x the fit (the groups alone end above scikit-learn's converged EM there);
-# over those within the fine range, +0.011 on Kurt3D and its subsamples at scikit-learn's EM, for
-# 0.5 ms of BALM's 8 (docs/BENCHMARKS.md, twenty-second and thirty-seventh sessions).
+# EM passes over the voxels after they are merged into groups (voxel_merge), for a cloud without
+# rings on the groups with a voxel within DENSE_3D_VOXEL_EM_RANGE of the sensor: +0.011 nats a point
+# on Kurt3D, and its subsamples at scikit-learn's EM. Over all the groups 8 passes gain 0.05 on BALM
+# for 1.9x the fit (the groups alone end above scikit-learn's converged EM there; docs/BENCHMARKS.md,
+# twenty-second and thirty-seventh sessions).
 DENSE_3D_VOXEL_MAX_ITER = 8
 DENSE_3D_VOXEL_EM_RANGE = DENSE_3D_VOXEL_FINE_RANGE  # m
 
@@ -96,6 +98,12 @@ class FitConfig:
     (gmm_core.voxel_merge), then EM runs on the summed statistics of the voxels of the components
     within `voxel_em_range` of the sensor for at most `voxel_max_iter` passes (gmm_core.voxel_em):
     a 3D scan of 80k points in milliseconds. With 0, EM runs on the points themselves (gmm_core.em).
+
+    The fine voxels and the EM near the sensor apply to clouds without a spinning lidar's rings
+    (gmm_core.rings finds none: a tilting scanner, a depth camera), which are dense in both
+    directions there and gained 0.19 nats a point (Kurt3D). A lidar's near field is the ground under
+    it, sampled along its rings: there they gained BALM 0.009 nats a point for 13 % of its fit
+    (docs/BENCHMARKS.md, thirty-seventh session).
     """
 
     points_per_component: float | None = None  # > 0; None: POINTS_PER_COMPONENT in 2D, DENSE_3D_... in 3D
@@ -108,8 +116,8 @@ class FitConfig:
     voxel_size: float | None = None  # m, >= 0, 3D only, 0: no voxels; None: DENSE_3D_VOXEL_SIZE
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 0; None: DENSE_3D_VOXEL_MAX_ITER
     voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
-    voxel_fine_range: float | None = None  # m, >= 0, < voxel_near_range: half voxel_size within, 0: none
-    voxel_em_range: float | None = None  # m, >= 0 (inf: every component): EM on the components within
+    voxel_fine_range: float | None = None  # m, >= 0, < voxel_near_range: half voxel_size within (no rings), 0: none
+    voxel_em_range: float | None = None  # m, >= 0 (inf: every component): EM on the components within (no rings)
 
     def __post_init__(self):
         for name in ("max_range", "reg_covar"):
@@ -184,17 +192,22 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
 
     def fit(points: np.ndarray) -> Mixture:
         if config.voxel_size:
+            points = np.ascontiguousarray(points)
+            rings = ring_spacing(points)
+            near_field = rings == 0.0  # the fine voxels and the EM near the sensor: see FitConfig
+            passes = min(config.max_iter, _given(config.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER))
             return fit_mixture_voxels(
                 points,
                 config.n_components_of_count(len(points), dim),
                 config.voxel_size,
                 cell_size=config.component_size,
                 near_range=_given(config.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE),
-                fine_range=_given(config.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE),
+                fine_range=_given(config.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE) if near_field else 0.0,
                 reg_covar=config.reg_covar,
-                max_iter=min(config.max_iter, _given(config.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER)),
+                max_iter=passes if near_field else 0,
                 tol=config.tol,
                 em_range=_given(config.voxel_em_range, DENSE_3D_VOXEL_EM_RANGE),
+                rings=rings,
             )
         k = config.n_components(points)
         return fit_mixture(points, k, reg_covar=config.reg_covar, max_iter=config.max_iter, tol=config.tol)

@@ -348,6 +348,7 @@ def fit_mixture_voxels(
     search_every: int = 0,
     footprint: bool = True,
     em_range: float = np.inf,
+    rings: float | None = None,
 ) -> Mixture:
     """A mixture of at most `n_components` Gaussians for (n, 3) points from the statistics of
     voxels of size `voxel_size` (m): the voxels merged bottom-up into that many groups
@@ -365,7 +366,8 @@ def fit_mixture_voxels(
     within `fine_range` (m; 0: none) in voxels of half the size, within half of it a quarter
     (voxels.voxel_tiers): there the points are dense and a coarse voxel joins surfaces.
     With `footprint`, the merge costs see each point's footprint across the rings of a spinning
-    lidar (read off the points' elevations in their frame, rings.py; none where there are none).
+    lidar (read off the points' elevations in their frame, rings.py; none where there are none;
+    `rings`: their spacing where the caller has read it).
 
     Deterministic: no seed. Fewer components come back only when there are fewer voxels than
     asked (voxels are never cut: the voxels must be much smaller than the components).
@@ -386,7 +388,8 @@ def fit_mixture_voxels(
         ratio = float(cell_size) / finest
         whole = round(ratio) >= 1 and abs(ratio - round(ratio)) < 1e-9 and round(ratio) % (1 << len(tier_ranges)) == 0
         k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
-    costed = with_footprint(sums, -shift, ring_spacing(points)) if footprint else sums.copy()
+    spacing = ring_spacing(points) if rings is None else rings
+    costed = with_footprint(sums, -shift, spacing) if footprint else sums.copy()
     group_sums, group = merge_voxels(keys, sums, costed, k, float(reg_covar), finest, tier_ranges, base_level)
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
@@ -406,9 +409,9 @@ def _refine_near(
     """EM on the voxels (`sums`, each in its merged `group`) of the groups with a voxel whose mean
     lies within `em_range` of the sensor (at -shift), as a mixture of its own: those groups'
     components change in place and keep their share of the weight; the others keep their voxels.
-    Near the sensor the points are densest and the groups' hard boundaries cut through what EM
-    shares between components; a lidar has a small part of its voxels there, so the passes cost
-    little (docs/BENCHMARKS.md, thirty-seventh session)."""
+    Near a tilting scanner or a depth camera the points are densest and the groups' hard boundaries
+    cut through what EM shares between components; the passes over those groups alone cost a
+    fraction of passes over all (docs/BENCHMARKS.md, thirty-seventh session)."""
     near, voxels = _near_groups(sums, group, len(weights), -shift, em_range)
     if len(voxels) == 0:
         return
