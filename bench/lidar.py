@@ -22,7 +22,7 @@ GMM and OctoMap see the same points (OctoMap: defaults, maxrange 60 m, 0.2 m):
   defaults choose it for them; mean log-likelihood per point of `fit_scan`'s mixture and of
   scikit-learn's GaussianMixture(K, full, reg_covar 1e-4, random_state 0) on the same points;
   with `--sklearn-seeds N`, scikit-learn's own log-likelihood for random_state 1..N-1 beside it;
-  and the same voxel EM converged: candidates searched on every pass, voxels and near range
+  and the same voxel EM converged (without the fine tiers): candidates searched on every pass, voxels and near range
   CONVERGED_VOXEL_SCALE times the defaults', CONVERGED_PASSES passes (its log-likelihood and seconds).
 2D: `fit_scan` of every Intel scan (after 20 warm-up scans), wall and CPU seconds in total.
 

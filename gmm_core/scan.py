@@ -57,17 +57,19 @@ DENSE_3D_VOXEL_SIZE = 0.25  # m: 3D EM runs on the statistics of voxels this siz
 # m: beyond this range from the sensor, voxels of twice the size (docs/BENCHMARKS.md, issue 15 part 3)
 DENSE_3D_VOXEL_NEAR_RANGE = 12.0
 # m: within this range of a cloud without rings, voxels of half the size, and within half of it a
-# quarter, where the points are densest: a log-likelihood a point of +0.184 nats on Kurt3D (57 % of
-# its points within 2 m); 3 m instead: Kurt3D's guard no better on average, BALM's fit 1.25x slower
-# (docs/BENCHMARKS.md, thirty-seventh session).
-DENSE_3D_VOXEL_FINE_RANGE = 2.5
-# EM passes over the voxels after they are merged into groups (voxel_merge), for a cloud without
-# rings on the groups with a voxel within DENSE_3D_VOXEL_EM_RANGE of the sensor: +0.011 nats a point
-# on Kurt3D, and its subsamples at scikit-learn's EM. Over all the groups 8 passes gain 0.05 on BALM
-# for 1.9x the fit (the groups alone end above scikit-learn's converged EM there; docs/BENCHMARKS.md,
-# twenty-second and thirty-seventh sessions).
-DENSE_3D_VOXEL_MAX_ITER = 8
-DENSE_3D_VOXEL_EM_RANGE = DENSE_3D_VOXEL_FINE_RANGE  # m
+# quarter, where the points are densest. Kurt3D's first scan (57 % of its points within 2 m) reaches
+# scikit-learn's converged EM with the same K from 4.5 m (with the EM below); 2.5 m fell 0.058 nats a
+# point short, 5 m fitted its sparser subsamples worse (docs/BENCHMARKS.md, thirty-eighth session).
+DENSE_3D_VOXEL_FINE_RANGE = 4.5
+# EM passes over the voxels of a cloud without rings after they are merged into groups (voxel_merge),
+# each voxel's candidate components searched again every DENSE_3D_VOXEL_SEARCH_EVERY-th pass: the
+# groups' hard boundaries cut through what EM shares between components where such a cloud is dense
+# (with the fine voxels to 4.5 m, +0.059 nats a point on Kurt3D's first scan, to scikit-learn's, for
+# 2.7x its fit; without the searches EM stalls 0.014 lower). On a lidar's rings the groups alone end
+# above scikit-learn's EM (BALM, whose fit keeps up with the sensor: 8 passes gained 0.05 for 1.9x;
+# docs/BENCHMARKS.md, twenty-second and thirty-eighth sessions).
+DENSE_3D_VOXEL_MAX_ITER = 12
+DENSE_3D_VOXEL_SEARCH_EVERY = 4
 
 
 def _given(value: T | None, default: T) -> T:
@@ -92,18 +94,18 @@ class FitConfig:
     range from the sensor the voxels are twice `voxel_size`, where a lidar's rings lie farther
     apart than a voxel; `voxel_fine_range` None means `DENSE_3D_VOXEL_FINE_RANGE`: within it they
     are half `voxel_size`, within half of it a quarter, where the points are densest.
-    `voxel_max_iter` and `voxel_em_range` None mean `DENSE_3D_VOXEL_MAX_ITER` and `..._EM_RANGE`.
+    `voxel_max_iter` None means `DENSE_3D_VOXEL_MAX_ITER`.
 
     With `voxel_size` > 0, the voxels are merged bottom-up into the components
-    (gmm_core.voxel_merge), then EM runs on the summed statistics of the voxels of the components
-    within `voxel_em_range` of the sensor for at most `voxel_max_iter` passes (gmm_core.voxel_em):
-    a 3D scan of 80k points in milliseconds. With 0, EM runs on the points themselves (gmm_core.em).
+    (gmm_core.voxel_merge), then EM runs on the summed statistics of the voxels for at most
+    `voxel_max_iter` passes (gmm_core.voxel_em): a 3D scan of 80k points in milliseconds. With 0,
+    EM runs on the points themselves (gmm_core.em).
 
-    The fine voxels and the EM near the sensor apply to clouds without a spinning lidar's rings
-    (gmm_core.rings finds none: a tilting scanner, a depth camera), which are dense in both
-    directions there and gained 0.19 nats a point (Kurt3D). A lidar's near field is the ground under
-    it, sampled along its rings: there they gained BALM 0.009 nats a point for 13 % of its fit
-    (docs/BENCHMARKS.md, thirty-seventh session).
+    The fine voxels and the EM apply to clouds without a spinning lidar's rings (gmm_core.rings
+    finds none: a tilting scanner, a depth camera), which are dense in both directions near the
+    sensor: Kurt3D's first scan gained 0.19 nats a point, to scikit-learn's. A lidar's near field is the ground
+    under it, sampled along its rings: there they gained BALM 0.009 nats a point for 13 % of its
+    fit, which has to keep up with the sensor (docs/BENCHMARKS.md, thirty-seventh session).
     """
 
     points_per_component: float | None = None  # > 0; None: POINTS_PER_COMPONENT in 2D, DENSE_3D_... in 3D
@@ -117,7 +119,6 @@ class FitConfig:
     voxel_max_iter: int | None = None  # EM passes over the voxels, >= 0; None: DENSE_3D_VOXEL_MAX_ITER
     voxel_near_range: float | None = None  # m, > 0: voxels twice voxel_size beyond; None: DENSE_3D_VOXEL_NEAR_RANGE
     voxel_fine_range: float | None = None  # m, >= 0, < voxel_near_range: half voxel_size within (no rings), 0: none
-    voxel_em_range: float | None = None  # m, >= 0 (inf: every component): EM on the components within (no rings)
 
     def __post_init__(self):
         for name in ("max_range", "reg_covar"):
@@ -137,8 +138,6 @@ class FitConfig:
             require_number("fit.voxel_near_range", self.voxel_near_range, positive=True)
         if self.voxel_fine_range is not None:
             require_number("fit.voxel_fine_range", self.voxel_fine_range, positive=False)
-        if self.voxel_em_range is not None:
-            require_number("fit.voxel_em_range", self.voxel_em_range, positive=False, finite=False)
         near = _given(self.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE)
         fine = _given(self.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE)
         if not fine < near:
@@ -155,7 +154,6 @@ class FitConfig:
             voxel_max_iter=_given(self.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER),
             voxel_near_range=_given(self.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE),
             voxel_fine_range=_given(self.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE),
-            voxel_em_range=_given(self.voxel_em_range, DENSE_3D_VOXEL_EM_RANGE),
         )
         return self if resolved == self else resolved
 
@@ -194,7 +192,7 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
         if config.voxel_size:
             points = np.ascontiguousarray(points)
             rings = ring_spacing(points)
-            near_field = rings == 0.0  # the fine voxels and the EM near the sensor: see FitConfig
+            ringless = rings == 0.0  # the fine voxels and the EM: see FitConfig
             passes = min(config.max_iter, _given(config.voxel_max_iter, DENSE_3D_VOXEL_MAX_ITER))
             return fit_mixture_voxels(
                 points,
@@ -202,11 +200,11 @@ def fit_scan(hits: np.ndarray, no_return: np.ndarray, config: FitConfig = FitCon
                 config.voxel_size,
                 cell_size=config.component_size,
                 near_range=_given(config.voxel_near_range, DENSE_3D_VOXEL_NEAR_RANGE),
-                fine_range=_given(config.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE) if near_field else 0.0,
+                fine_range=_given(config.voxel_fine_range, DENSE_3D_VOXEL_FINE_RANGE) if ringless else 0.0,
                 reg_covar=config.reg_covar,
-                max_iter=passes if near_field else 0,
+                max_iter=passes if ringless else 0,
                 tol=config.tol,
-                em_range=_given(config.voxel_em_range, DENSE_3D_VOXEL_EM_RANGE),
+                search_every=DENSE_3D_VOXEL_SEARCH_EVERY,
                 rings=rings,
             )
         k = config.n_components(points)

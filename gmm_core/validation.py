@@ -6,19 +6,16 @@ import math
 import numbers
 
 
-def require_number(field: str, value, *, positive: bool, finite: bool = True) -> float:
-    """`value` as a float if it is a number (finite unless not `finite`: +inf allowed), > 0 when
-    `positive` else >= 0."""
+def require_number(field: str, value, *, positive: bool) -> float:
+    """`value` as a float if it is a finite number, > 0 when `positive` else >= 0."""
     if (
         isinstance(value, bool)
         or not isinstance(value, numbers.Real)
-        or math.isnan(value)
-        or (finite and math.isinf(value))
+        or not math.isfinite(value)
         or value < 0
         or (positive and value == 0)
     ):
-        kind = "a finite number" if finite else "a number (inf allowed)"
-        raise ValueError(f"{field}: must be {kind} {'> 0' if positive else '>= 0'}, got {value!r}")
+        raise ValueError(f"{field}: must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}")
     return float(value)
 
 

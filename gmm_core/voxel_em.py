@@ -347,16 +347,15 @@ def fit_mixture_voxels(
     overrelaxation: float = _OVERRELAXATION,
     search_every: int = 0,
     footprint: bool = True,
-    em_range: float = np.inf,
     rings: float | None = None,
 ) -> Mixture:
     """A mixture of at most `n_components` Gaussians for (n, 3) points from the statistics of
     voxels of size `voxel_size` (m): the voxels merged bottom-up into that many groups
-    (voxel_merge), then at most `max_iter` passes of EM on the voxels (0: none) of the groups with
-    a voxel within `em_range` (m) of the sensor (_refine_near); `reg_covar`,
+    (voxel_merge), then at most `max_iter` passes of EM on the voxels (0: none); `reg_covar`,
     `max_iter` and `tol` as in em.fit_mixture (tol bounds the change of the bound per point), `overrelaxation` the
     factor of the M-step from the third pass (1: plain EM), `search_every` the passes between
-    searches of each voxel's candidates after the first (0: the first pass only; searched on every
+    searches of each voxel's candidates after the first (0: the first pass only; fit_scan's for a
+    cloud without rings: scan.DENSE_3D_VOXEL_SEARCH_EVERY; searched on every
     pass, on finer voxels, with more passes, the fit reaches scikit-learn's converged EM at several
     times the time, docs/BENCHMARKS.md). With `cell_size` (m),
     also at most one component per occupied cell of that size (count_voxels(points, cell_size)),
@@ -390,60 +389,15 @@ def fit_mixture_voxels(
         k = min(k, _count_cells(keys, d, round(ratio)) if whole else count_voxels(points, float(cell_size)))
     spacing = ring_spacing(points) if rings is None else rings
     costed = with_footprint(sums, -shift, spacing) if footprint else sums.copy()
-    group_sums, group = merge_voxels(keys, sums, costed, k, float(reg_covar), finest, tier_ranges, base_level)
+    group_sums, _ = merge_voxels(keys, sums, costed, k, float(reg_covar), finest, tier_ranges, base_level)
     k = group_sums.shape[0]
     weights, mu, covs = np.empty(k), np.empty((k, d)), np.empty((k, d, d))
     em._m_step(group_sums, float(reg_covar), weights, mu, covs)
     if max_iter > 0:
-        _refine_near(
-            sums, group, shift, float(em_range), weights, mu, covs, float(reg_covar), int(max_iter), float(tol),
+        means, scatter = _means_and_scatter(sums)
+        _voxel_em(
+            means, sums, scatter, weights, mu, covs, float(reg_covar), int(max_iter), float(tol), _KEPT_COMPONENTS,
             float(overrelaxation), int(search_every),
         )  # fmt: skip
     keep = weights > 1e-12
     return Mixture(weights[keep] / weights[keep].sum(), mu[keep] + shift, covs[keep], n)
-
-
-def _refine_near(
-    sums, group, shift, em_range, weights, mu, covs, reg_covar, max_iter, tol, overrelaxation, search_every
-):
-    """EM on the voxels (`sums`, each in its merged `group`) of the groups with a voxel whose mean
-    lies within `em_range` of the sensor (at -shift), as a mixture of its own: those groups'
-    components change in place and keep their share of the weight; the others keep their voxels.
-    Near a tilting scanner or a depth camera the points are densest and the groups' hard boundaries
-    cut through what EM shares between components; the passes over those groups alone cost a
-    fraction of passes over all (docs/BENCHMARKS.md, thirty-seventh session)."""
-    near, voxels = _near_groups(sums, group, len(weights), -shift, em_range)
-    if len(voxels) == 0:
-        return
-    means, scatter = _means_and_scatter(sums[voxels])
-    share = weights[near].sum()
-    w, m, c = weights[near], mu[near], covs[near]
-    _voxel_em(
-        means, sums[voxels], scatter, w, m, c, reg_covar, max_iter, tol, _KEPT_COMPONENTS, overrelaxation, search_every
-    )
-    weights[near], mu[near], covs[near] = w * share, m, c
-
-
-@njit(cache=True)
-def _near_groups(sums, group, n_groups, sensor, em_range):
-    """Which of the `n_groups` groups (each voxel's `group`) have a voxel whose mean (of its sums,
-    in the frame the sums are in) lies within `em_range` of `sensor`, and those groups' voxels."""
-    near = np.zeros(n_groups, dtype=np.bool_)
-    limit = em_range * em_range
-    for v in range(sums.shape[0]):
-        r2 = 0.0
-        for a in range(3):
-            x = sums[v, 1 + a] / sums[v, 0] - sensor[a]
-            r2 += x * x
-        if r2 <= limit:
-            near[group[v]] = True
-    count = 0
-    for v in range(sums.shape[0]):
-        count += near[group[v]]
-    voxels = np.empty(count, dtype=np.int64)
-    count = 0
-    for v in range(sums.shape[0]):
-        if near[group[v]]:
-            voxels[count] = v
-            count += 1
-    return near, voxels
