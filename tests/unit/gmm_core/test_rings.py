@@ -13,6 +13,7 @@ from gmm_core.occupancy import map_estimate, monte_carlo_estimate
 from gmm_core.reconstruct import reconstruct
 from gmm_core.rings import (
     _BIN,
+    _MIN_QUADRANT_POINTS,
     _MIN_RANGE,
     _MIN_RING_PAIRS,
     _MIN_RING_POINTS,
@@ -26,12 +27,9 @@ from gmm_core.voxel_em import fit_mixture_voxels
 from support.lidar import ring_scan, tunnel_scan
 
 
-def reference_spacing(points):
-    """ring_spacing by sorting the sampled elevations' bins: clusters split where _RING_GAP or
-    more of empty bins lie between two elevations."""
-    sampled = points[:: max(1, len(points) // _SAMPLE)]
-    sampled = sampled[np.linalg.norm(sampled, axis=1) >= _MIN_RANGE]
-    elevation = np.arctan2(sampled[:, 2], np.hypot(sampled[:, 0], sampled[:, 1]))
+def reference_elevation_spacing(elevation):
+    """The spacing of rings among `elevation`s (rad) by sorting their bins: clusters split where
+    _RING_GAP or more of empty bins lie between two elevations; 0 where too few pairs are rings."""
     bins = np.sort(((elevation + np.pi / 2) / _BIN).astype(np.int64))
     split = np.flatnonzero(np.diff(bins) > np.ceil(_RING_GAP / _BIN)) + 1
     clusters = [c for c in np.split(bins, split) if len(c) >= _MIN_RING_POINTS]
@@ -43,6 +41,21 @@ def reference_spacing(points):
     if rings.sum() < _MIN_RING_PAIRS or held[:-1][rings].sum() < _MIN_RING_SHARE * len(bins):
         return 0.0
     return float(np.median(gap[rings]) * _BIN)
+
+
+def reference_spacing(points):
+    """ring_spacing with numpy: the sampled points beyond _MIN_RANGE split by the quadrant of their
+    azimuth; the median spacing of the quadrants read that show rings where enough do, else the
+    whole sweep's."""
+    sampled = points[:: max(1, len(points) // _SAMPLE)]
+    sampled = sampled[np.linalg.norm(sampled, axis=1) >= _MIN_RANGE]
+    elevation = np.arctan2(sampled[:, 2], np.hypot(sampled[:, 0], sampled[:, 1]))
+    quadrant = 2 * (sampled[:, 0] < 0) + (sampled[:, 1] < 0)
+    read = [elevation[quadrant == q] for q in range(4) if (quadrant == q).sum() >= _MIN_QUADRANT_POINTS]
+    spacings = [x for x in map(reference_elevation_spacing, read) if x > 0]
+    if len(spacings) >= 2 and 4 * len(spacings) >= 3 * len(read):
+        return float(np.median(spacings))
+    return reference_elevation_spacing(elevation)
 
 
 def random_ring_cloud(rng):
@@ -79,6 +92,23 @@ def test_ring_spacing_reads_simulated_lidars():
     rng = np.random.default_rng(1)
     assert np.degrees(ring_spacing(ring_scan(rng))) == pytest.approx(45.0 / 63, abs=0.02)  # an OS1-64
     assert np.degrees(ring_spacing(tunnel_scan(rng)[0])) == pytest.approx(2.0, abs=0.02)  # the mine sim's
+
+
+def test_ring_spacing_reads_a_sweep_whose_rings_drift():
+    # A sensor that tilts as it sweeps (a robot pitching, BALM's OS0 turning) shifts its rings'
+    # elevations from the first azimuth to the last: by 2 deg here, across rings 0.71 deg apart.
+    # Over the whole sweep they smear into one another; within a quadrant they are rings.
+    points = ring_scan(np.random.default_rng(4))
+    r = np.linalg.norm(points, axis=1)
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    elevation = np.arcsin(points[:, 2] / r) + np.radians(2.0) * (azimuth + np.pi) / (2 * np.pi)
+    drifted = r[:, None] * np.column_stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+    )
+    assert np.degrees(ring_spacing(drifted)) == pytest.approx(45.0 / 63, abs=0.02)
+    assert ring_spacing(drifted) == pytest.approx(reference_spacing(drifted), rel=1e-12)
+    whole = drifted[:: len(drifted) // _SAMPLE]
+    assert reference_elevation_spacing(np.arcsin(whole[:, 2] / np.linalg.norm(whole, axis=1))) == 0.0
 
 
 def test_scans_without_rings_have_no_spacing():
