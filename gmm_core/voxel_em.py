@@ -56,6 +56,12 @@ _OVERRELAXATION = 1.9
 _CELLS_PER_VOXEL = 8
 _BLOCK_VOXELS_PER_COMPONENT = 2
 _ROW = 10  # numbers per packed component (_pack_components)
+# Voxels the fine tiers may make (fit_mixture_voxels' fine_range): past this many the points fill a
+# volume near the sensor (foliage, dust) rather than lie on surfaces, and the cloud is voxelised again
+# without them. Kurt3D's scans make 6,300-7,200, a depth camera's room 3,500; 200,000 points filling a
+# ball of 4.4 m made 131,534 and took 541 ms to fit against 99 ms without the fine tiers (54 ms before
+# they reached 4.5 m and EM every group; docs/BENCHMARKS.md, thirty-eighth session).
+_FINE_VOXEL_BUDGET = 32768
 
 
 @njit(cache=True, inline="always")
@@ -363,7 +369,8 @@ def fit_mixture_voxels(
     (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
     size: there the scan's rings lie farther apart than a voxel, so a voxel holds few points; and
     within `fine_range` (m; 0: none) in voxels of half the size, within half of it a quarter
-    (voxels.voxel_tiers): there the points are dense and a coarse voxel joins surfaces.
+    (voxels.voxel_tiers): there the points are dense and a coarse voxel joins surfaces; unless those
+    tiers make more than _FINE_VOXEL_BUDGET voxels (a volume of points, not surfaces).
     With `footprint`, the merge costs see each point's footprint across the rings of a spinning
     lidar (read off the points' elevations in their frame, rings.py; none where there are none;
     `rings`: their spacing where the caller has read it).
@@ -382,6 +389,9 @@ def fit_mixture_voxels(
     shift = points[0].copy()  # a point of the cloud: the second moments of x - shift stay precise
     finest, tier_ranges, base_level = voxel_tiers(float(voxel_size), float(fine_range), float(near_range))
     sums, keys = _voxel_statistics(points, finest, shift, tier_ranges)
+    if fine_range > 0 and len(sums) > _FINE_VOXEL_BUDGET:  # a volume, not surfaces: no fine tiers
+        finest, tier_ranges, base_level = voxel_tiers(float(voxel_size), 0.0, float(near_range))
+        sums, keys = _voxel_statistics(points, finest, shift, tier_ranges)
     k = int(min(max(n_components, 1), n))
     if cell_size is not None:
         ratio = float(cell_size) / finest

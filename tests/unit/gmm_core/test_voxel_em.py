@@ -13,8 +13,16 @@ from sklearn.mixture import GaussianMixture
 
 from gmm_core import FitConfig, em, fit_scan
 from gmm_core.scan import DENSE_3D_VOXEL_SEARCH_EVERY
-from gmm_core.voxel_em import _ROW, _add_block, _e_step_block, _log, _pack_components, fit_mixture_voxels
-from gmm_core.voxels import _means_and_scatter, _voxel_statistics, count_voxels
+from gmm_core.voxel_em import (
+    _FINE_VOXEL_BUDGET,
+    _ROW,
+    _add_block,
+    _e_step_block,
+    _log,
+    _pack_components,
+    fit_mixture_voxels,
+)
+from gmm_core.voxels import _means_and_scatter, _voxel_statistics, count_voxels, voxel_tiers
 
 
 def scan_like(rng, n=3000):
@@ -394,6 +402,24 @@ def test_em_searched_again_every_few_passes_ends_higher_on_a_dense_cloud(data_di
         points, k, three.voxel_size, max_iter=three.voxel_max_iter, search_every=DENSE_3D_VOXEL_SEARCH_EVERY, **fit
     )
     assert again.log_density(points).mean() > once.log_density(points).mean() + 0.005
+
+
+def test_a_volume_of_points_is_fitted_without_the_fine_voxels():
+    # 50,000 points filling a ball of 4.4 m round the sensor (foliage, dust): the fine tiers would make
+    # 44,597 voxels, past the budget, and the cloud is voxelised as if it had none; a surface's fine
+    # tiers stay (Kurt3D's scans make 6,300-7,200).
+    rng = np.random.default_rng(0)
+    direction = rng.normal(size=(50_000, 3))
+    ball = direction / np.linalg.norm(direction, axis=1)[:, None] * 4.4 * rng.random((50_000, 1)) ** (1 / 3)
+    three = FitConfig().for_dimension(3)
+    fit = dict(cell_size=1.0, near_range=three.voxel_near_range, max_iter=2, rings=0.0)
+    finest, tiers, _ = voxel_tiers(three.voxel_size, three.voxel_fine_range, three.voxel_near_range)
+    assert len(_voxel_statistics(ball, finest, ball[0].copy(), tiers)[0]) > _FINE_VOXEL_BUDGET
+    fine = fit_mixture_voxels(ball, 500, three.voxel_size, fine_range=three.voxel_fine_range, **fit)
+    assert np.array_equal(fine.means, fit_mixture_voxels(ball, 500, three.voxel_size, fine_range=0.0, **fit).means)
+    surface = scan_like(rng, 20_000) - [1.0, 1.0, 0.2]
+    finer = fit_mixture_voxels(surface, 200, three.voxel_size, fine_range=three.voxel_fine_range, **fit)
+    assert not np.array_equal(finer.means, fit_mixture_voxels(surface, 200, three.voxel_size, **fit).means)
 
 
 def test_fit_scan_uses_the_fine_voxels_and_the_em_for_a_cloud_without_rings_only():
