@@ -56,11 +56,12 @@ _OVERRELAXATION = 1.9
 _CELLS_PER_VOXEL = 8
 _BLOCK_VOXELS_PER_COMPONENT = 2
 _ROW = 10  # numbers per packed component (_pack_components)
-# Voxels the fine tiers may make (fit_mixture_voxels' fine_range): past this many the points fill a
-# volume near the sensor (foliage, dust) rather than lie on surfaces, and the cloud is voxelised again
-# without them. Kurt3D's scans make 6,300-7,200, a depth camera's room 3,500; 200,000 points filling a
-# ball of 4.4 m made 131,534 and took 541 ms to fit against 99 ms without the fine tiers (54 ms before
-# they reached 4.5 m and EM every group; docs/BENCHMARKS.md, thirty-eighth session).
+# Voxels a cloud may make with the fine tiers (fit_mixture_voxels' fine_range): past this many its
+# points fill a volume near the sensor (foliage, dust) rather than lie on surfaces, and it is voxelised
+# again without them. Kurt3D's scans make 6,266-7,199, a depth camera's room 3,500; 200,000 points
+# filling a ball of 4.4 m made 131,534 and took 541-832 ms to fit (two runs) against 99-100 ms without
+# the fine tiers (54 ms before they reached 4.5 m and EM every group; docs/BENCHMARKS.md,
+# thirty-eighth session).
 _FINE_VOXEL_BUDGET = 32768
 
 
@@ -361,9 +362,9 @@ def fit_mixture_voxels(
     `max_iter` and `tol` as in em.fit_mixture (tol bounds the change of the bound per point), `overrelaxation` the
     factor of the M-step from the third pass (1: plain EM), `search_every` the passes between
     searches of each voxel's candidates after the first (0: the first pass only; fit_scan's for a
-    cloud without rings: scan.DENSE_3D_VOXEL_SEARCH_EVERY; searched on every
-    pass, on finer voxels, with more passes, the fit reaches scikit-learn's converged EM at several
-    times the time, docs/BENCHMARKS.md). With `cell_size` (m),
+    cloud without rings: scan.DENSE_3D_VOXEL_SEARCH_EVERY; searched on every pass, on finer voxels,
+    with more passes, the fit reaches scikit-learn's converged EM at several times the time,
+    docs/BENCHMARKS.md). With `cell_size` (m),
     also at most one component per occupied cell of that size (count_voxels(points, cell_size)),
     counted from the voxels when it is a whole number of voxels. Points farther than `near_range`
     (m) from the origin of their frame (the sensor, for a scan) are summed in voxels of twice the
